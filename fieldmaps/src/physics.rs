@@ -1,0 +1,111 @@
+//! Physical laws shared by the plant and the controller (paper Sec. II-B).
+
+use nalgebra::{Matrix3, Vector2, Vector3};
+
+/// Vacuum permeability, T·m/A (CODATA 2018; ≈ 4π·1e-7).
+pub const MU0: f64 = 1.256_637_062_12e-6;
+
+/// Translational damping of a slender body, paper Eq. 7: c_t = 2π μ L / ln(L/r), N·s/m.
+///
+/// For the capsule (L = 7.4 mm, r = 1.4 mm): 5.6e-4 N·s/m at 20 cP, 1.2e-4 N·s/m at 4.3 cP.
+/// The model needs L > r > 0 and μ > 0; otherwise the result is NaN (use
+/// [`crate::rig::RobotParams::translational_damping`] for a checked version).
+pub fn translational_damping(viscosity_pa_s: f64, length_m: f64, radius_m: f64) -> f64 {
+    if !(viscosity_pa_s > 0.0 && radius_m > 0.0 && length_m > radius_m) {
+        return f64::NAN;
+    }
+    2.0 * std::f64::consts::PI * viscosity_pa_s * length_m / (length_m / radius_m).ln()
+}
+
+/// Force on a point dipole, F = ∇(m·B), i.e. F_j = Σ_i m_i ∂B_i/∂x_j (paper: F = mᵀ∇B).
+///
+/// `gradient[(i, j)] = ∂B_i/∂x_j`. In a current-free region the gradient is symmetric, so this
+/// equals (m·∇)B.
+pub fn magnetic_force(moment: &Vector3<f64>, gradient: &Matrix3<f64>) -> Vector3<f64> {
+    gradient.tr_mul(moment)
+}
+
+/// Torque on a point dipole, T = m × B.
+pub fn magnetic_torque(moment: &Vector3<f64>, field: &Vector3<f64>) -> Vector3<f64> {
+    moment.cross(field)
+}
+
+/// Linear (Stokes-like) drag on the robot, paper Eq. 6: F = c_t · v_rel.
+///
+/// `relative_velocity` = fluid velocity − robot velocity, so the force pushes the robot toward
+/// moving with the fluid (and opposes its motion in still fluid).
+pub fn linear_drag(c_t: f64, relative_velocity: &Vector2<f64>) -> Vector2<f64> {
+    relative_velocity * c_t
+}
+
+/// Quadratic (inertial) drag, F = ½ ρ C_d A |v_rel| v_rel, same sign convention as
+/// [`linear_drag`]. The controller's nominal model omits it; the plant adds it because the robot
+/// Reynolds number reaches ~190 at 10 cm/s in 4.3 cP fluid.
+pub fn quadratic_drag(
+    density_kg_m3: f64,
+    drag_coefficient: f64,
+    frontal_area_m2: f64,
+    relative_velocity: &Vector2<f64>,
+) -> Vector2<f64> {
+    relative_velocity
+        * (0.5 * density_kg_m3 * drag_coefficient * frontal_area_m2)
+        * relative_velocity.norm()
+}
+
+/// Reynolds number ρ v L / μ.
+pub fn reynolds_number(density_kg_m3: f64, speed_m_s: f64, length_m: f64, viscosity: f64) -> f64 {
+    density_kg_m3 * speed_m_s * length_m / viscosity
+}
+
+/// In-plane dipole moment for a robot whose magnet axis has `heading_rad`, measured from +x
+/// toward +y (counter-clockwise seen from the camera).
+pub fn in_plane_moment(magnitude_am2: f64, heading_rad: f64) -> Vector3<f64> {
+    Vector3::new(heading_rad.cos(), heading_rad.sin(), 0.0) * magnitude_am2
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn damping_matches_rig_md() {
+        let c20 = translational_damping(0.020, 7.4e-3, 1.4e-3);
+        let c43 = translational_damping(0.0043, 7.4e-3, 1.4e-3);
+        assert!((c20 / 5.6e-4 - 1.0).abs() < 0.05, "{c20}");
+        assert!((c43 / 1.2e-4 - 1.0).abs() < 0.05, "{c43}");
+        assert!(translational_damping(0.02, 1e-3, 2e-3).is_nan());
+        assert!(translational_damping(-1.0, 7.4e-3, 1.4e-3).is_nan());
+    }
+
+    #[test]
+    fn paper_magnet_force() {
+        // 0.43 T/m gradient along x of B_x: 8.6e-4 A·m² × 0.43 T/m ≈ 0.37 mN.
+        let g = Matrix3::new(0.43, 0.0, 0.0, 0.0, -0.215, 0.0, 0.0, 0.0, -0.215);
+        let f = magnetic_force(&Vector3::new(8.6e-4, 0.0, 0.0), &g);
+        assert!((f.x - 0.37e-3).abs() < 0.005e-3);
+        assert!(f.y.abs() < 1e-15 && f.z.abs() < 1e-15);
+    }
+
+    #[test]
+    fn force_uses_transpose() {
+        // F_j = Σ_i m_i ∂B_i/∂x_j: only gradient[(0, 1)] is set, m along x ⇒ force along y.
+        let mut g = Matrix3::zeros();
+        g[(0, 1)] = 2.0;
+        let f = magnetic_force(&Vector3::new(1.0, 0.0, 0.0), &g);
+        assert_eq!(f, Vector3::new(0.0, 2.0, 0.0));
+    }
+
+    #[test]
+    fn torque_and_drag() {
+        let t = magnetic_torque(&Vector3::x(), &Vector3::y());
+        assert_eq!(t, Vector3::z());
+        let d = linear_drag(2.0, &Vector2::new(1.0, -1.0));
+        assert_eq!(d, Vector2::new(2.0, -2.0));
+        let q = quadratic_drag(1000.0, 1.0, 2.0, &Vector2::new(3.0, 4.0));
+        assert!((q - Vector2::new(3.0, 4.0) * 5000.0).norm() < 1e-9);
+        let m = in_plane_moment(2.0, std::f64::consts::FRAC_PI_2);
+        assert!((m - Vector3::new(0.0, 2.0, 0.0)).norm() < 1e-12);
+        let re = reynolds_number(1113.0, 0.1, 7.4e-3, 0.0043);
+        assert!((re - 191.5).abs() < 1.0, "{re}");
+    }
+}

@@ -1,0 +1,297 @@
+//! Rig parameters: robot, fluid and coil-driver limits, with defaults taken from the paper
+//! (`reference/paper.tex`) and `RIG.md`. All values are SI.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::physics;
+
+/// Errors from loading or validating rig parameters.
+#[derive(Debug, Error)]
+pub enum RigError {
+    #[error("invalid rig parameter `{field}`: {reason}")]
+    Invalid {
+        field: &'static str,
+        reason: &'static str,
+    },
+    #[error("cannot parse rig config: {0}")]
+    Parse(#[from] toml::de::Error),
+    #[error("cannot serialize rig config: {0}")]
+    Serialize(#[from] toml::ser::Error),
+}
+
+fn require_positive(field: &'static str, v: f64) -> Result<(), RigError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(RigError::Invalid {
+            field,
+            reason: "must be finite and > 0",
+        })
+    }
+}
+
+/// The capsule robot.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RobotParams {
+    /// Dipole moment of the embedded N50 1 mm × 1 mm disk magnet, A·m².
+    /// Paper: 0.37 mN at 0.43 T/m ⇒ |m| = 0.37e-3 / 0.43 ≈ 8.6e-4 A·m².
+    pub magnet_moment_am2: f64,
+    /// Robot mass, kg (≈ 6 mg magnet + 20 mg resin + 22 mg fluid ≈ 50 mg, RIG.md).
+    pub mass_kg: f64,
+    /// Hydrodynamic added mass, kg. Default 0.5·ρ·V with the capsule taken as a cylinder
+    /// (V = π r² L = 4.56e-8 m³) in ρ = 1113 kg/m³ fluid: 2.54e-5 kg. The coefficient 0.5 is the
+    /// sphere value, a middle ground between axial (≈0.1 for L/D ≈ 2.6) and broadside (≈1) motion.
+    pub added_mass_kg: f64,
+    /// Capsule length, m.
+    pub length_m: f64,
+    /// Capsule diameter, m.
+    pub diameter_m: f64,
+}
+
+impl Default for RobotParams {
+    fn default() -> Self {
+        let length_m: f64 = 7.4e-3;
+        let diameter_m: f64 = 2.8e-3;
+        let volume = std::f64::consts::PI * (0.5 * diameter_m).powi(2) * length_m;
+        Self {
+            magnet_moment_am2: 8.6e-4,
+            mass_kg: 5.0e-5,
+            added_mass_kg: 0.5 * FluidParams::GLYCERIN_WATER_DENSITY * volume,
+            length_m,
+            diameter_m,
+        }
+    }
+}
+
+impl RobotParams {
+    pub fn radius_m(&self) -> f64 {
+        0.5 * self.diameter_m
+    }
+
+    /// Displaced volume (cylinder approximation), m³.
+    pub fn volume_m3(&self) -> f64 {
+        std::f64::consts::PI * self.radius_m().powi(2) * self.length_m
+    }
+
+    /// Mass the translational dynamics see: body + added mass, kg.
+    pub fn effective_mass_kg(&self) -> f64 {
+        self.mass_kg + self.added_mass_kg
+    }
+
+    /// Paper Eq. 7 damping coefficient in `fluid`, N·s/m.
+    pub fn translational_damping(&self, fluid: &FluidParams) -> Result<f64, RigError> {
+        self.validate()?;
+        fluid.validate()?;
+        Ok(physics::translational_damping(
+            fluid.viscosity_pa_s,
+            self.length_m,
+            self.radius_m(),
+        ))
+    }
+
+    pub fn validate(&self) -> Result<(), RigError> {
+        require_positive("robot.magnet_moment_am2", self.magnet_moment_am2)?;
+        require_positive("robot.mass_kg", self.mass_kg)?;
+        require_positive("robot.length_m", self.length_m)?;
+        require_positive("robot.diameter_m", self.diameter_m)?;
+        if !(self.added_mass_kg.is_finite() && self.added_mass_kg >= 0.0) {
+            return Err(RigError::Invalid {
+                field: "robot.added_mass_kg",
+                reason: "must be finite and >= 0",
+            });
+        }
+        // Eq. 7 needs ln(L/r) > 0, i.e. a slender body.
+        if self.length_m <= self.radius_m() {
+            return Err(RigError::Invalid {
+                field: "robot.length_m",
+                reason: "must exceed the radius (slender-body drag model)",
+            });
+        }
+        Ok(())
+    }
+}
+
+/// Glycerin–water working fluid.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FluidParams {
+    pub viscosity_pa_s: f64,
+    pub density_kg_m3: f64,
+}
+
+impl FluidParams {
+    /// Density the paper's CFD uses (1113 kg/m³). The paper gives one value for both mixtures,
+    /// so both presets use it.
+    pub const GLYCERIN_WATER_DENSITY: f64 = 1113.0;
+
+    /// 65:35 glycerin–water, 20 cP at 23 °C (elevated blood viscosity).
+    pub fn cp20() -> Self {
+        Self {
+            viscosity_pa_s: 0.020,
+            density_kg_m3: Self::GLYCERIN_WATER_DENSITY,
+        }
+    }
+
+    /// 40:60 glycerin–water, 4.3 cP at 23 °C (near-healthy blood viscosity).
+    pub fn cp4_3() -> Self {
+        Self {
+            viscosity_pa_s: 0.0043,
+            density_kg_m3: Self::GLYCERIN_WATER_DENSITY,
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), RigError> {
+        require_positive("fluid.viscosity_pa_s", self.viscosity_pa_s)?;
+        require_positive("fluid.density_kg_m3", self.density_kg_m3)
+    }
+}
+
+impl Default for FluidParams {
+    /// The static-fluid baseline of the paper (20 cP).
+    fn default() -> Self {
+        Self::cp20()
+    }
+}
+
+/// Coil driver limits.
+///
+/// The paper gives 0.36 kW per coil (FEA case) and 60 V supplies. Taking 0.36 kW as the rated
+/// power of a coil driven at the full supply voltage gives R = V²/P = 3600/360 = 10 Ω and
+/// I_max = V/R = 6 A (= sqrt(P/R)). The paper gives no total budget; we assume 2.16 kW
+/// (60 V × 36 A, i.e. six coils at full rating at once) as the supply/thermal budget.
+/// The resistance is an electrical-budget parameter: the field model's turn counts are
+/// calibrated to the paper's FEA numbers, not derived from a wire gauge.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CoilLimits {
+    /// Per-coil current magnitude limit, A.
+    pub max_current_a: f64,
+    /// Total ohmic power over all coils, W.
+    pub max_total_power_w: f64,
+    /// Resistance of each coil, Ω.
+    pub coil_resistance_ohm: f64,
+}
+
+impl CoilLimits {
+    /// Rated power of one coil in the paper's FEA case, W.
+    pub const RATED_COIL_POWER_W: f64 = 360.0;
+    /// Supply voltage, V.
+    pub const SUPPLY_VOLTAGE_V: f64 = 60.0;
+
+    /// Current that dissipates `power_w` in one coil: I = sqrt(P/R).
+    pub fn current_for_power(&self, power_w: f64) -> Result<f64, RigError> {
+        self.validate()?;
+        if !(power_w.is_finite() && power_w >= 0.0) {
+            return Err(RigError::Invalid {
+                field: "power_w",
+                reason: "must be finite and >= 0",
+            });
+        }
+        Ok((power_w / self.coil_resistance_ohm).sqrt())
+    }
+
+    /// Power one coil dissipates at the current limit, W.
+    pub fn max_coil_power_w(&self) -> f64 {
+        self.max_current_a.powi(2) * self.coil_resistance_ohm
+    }
+
+    pub fn validate(&self) -> Result<(), RigError> {
+        require_positive("coil_limits.max_current_a", self.max_current_a)?;
+        require_positive("coil_limits.max_total_power_w", self.max_total_power_w)?;
+        require_positive("coil_limits.coil_resistance_ohm", self.coil_resistance_ohm)
+    }
+}
+
+impl Default for CoilLimits {
+    fn default() -> Self {
+        let r = Self::SUPPLY_VOLTAGE_V.powi(2) / Self::RATED_COIL_POWER_W;
+        Self {
+            max_current_a: Self::SUPPLY_VOLTAGE_V / r,
+            max_total_power_w: 2160.0,
+            coil_resistance_ohm: r,
+        }
+    }
+}
+
+/// Everything above in one TOML-loadable block (`[robot]`, `[fluid]`, `[coil_limits]`).
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RigConfig {
+    pub robot: RobotParams,
+    pub fluid: FluidParams,
+    pub coil_limits: CoilLimits,
+}
+
+impl RigConfig {
+    /// Parse and validate; missing fields take their defaults.
+    pub fn from_toml_str(s: &str) -> Result<Self, RigError> {
+        let cfg: Self = toml::from_str(s)?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    pub fn to_toml_string(&self) -> Result<String, RigError> {
+        Ok(toml::to_string(self)?)
+    }
+
+    pub fn validate(&self) -> Result<(), RigError> {
+        self.robot.validate()?;
+        self.fluid.validate()?;
+        self.coil_limits.validate()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_consistent() {
+        let cfg = RigConfig::default();
+        cfg.validate().unwrap();
+        let l = cfg.coil_limits;
+        assert!((l.coil_resistance_ohm - 10.0).abs() < 1e-12);
+        assert!((l.max_current_a - 6.0).abs() < 1e-12);
+        assert!((l.max_coil_power_w() - 360.0).abs() < 1e-9);
+        assert!((l.current_for_power(360.0).unwrap() - 6.0).abs() < 1e-12);
+        let r = cfg.robot;
+        assert!(
+            (r.added_mass_kg - 2.536e-5).abs() < 0.01e-5,
+            "{}",
+            r.added_mass_kg
+        );
+    }
+
+    #[test]
+    fn damping_presets() {
+        let r = RobotParams::default();
+        let c20 = r.translational_damping(&FluidParams::cp20()).unwrap();
+        let c43 = r.translational_damping(&FluidParams::cp4_3()).unwrap();
+        assert!((c20 / 5.6e-4 - 1.0).abs() < 0.05, "{c20}");
+        assert!((c43 / 1.2e-4 - 1.0).abs() < 0.05, "{c43}");
+    }
+
+    #[test]
+    fn toml_roundtrip_and_partial() {
+        let cfg = RigConfig {
+            fluid: FluidParams::cp4_3(),
+            ..Default::default()
+        };
+        let s = cfg.to_toml_string().unwrap();
+        assert_eq!(RigConfig::from_toml_str(&s).unwrap(), cfg);
+        let partial = RigConfig::from_toml_str("[fluid]\nviscosity_pa_s = 0.0043\n").unwrap();
+        assert_eq!(partial.fluid, FluidParams::cp4_3());
+        assert_eq!(partial.robot, RobotParams::default());
+    }
+
+    #[test]
+    fn bad_config_is_an_error() {
+        assert!(RigConfig::from_toml_str("[robot]\nmass_kg = -1.0\n").is_err());
+        assert!(RigConfig::from_toml_str("[robot]\nlength_m = 1e-3\n").is_err());
+        assert!(RigConfig::from_toml_str("[fluid]\nbogus = 1\n").is_err());
+        assert!(RigConfig::from_toml_str("not toml [").is_err());
+        assert!(CoilLimits::default().current_for_power(f64::NAN).is_err());
+    }
+}

@@ -1,0 +1,129 @@
+//! The serial link to the Teensy: opens lazily, reconnects after the port vanishes, never blocks
+//! the loop for long.
+
+use std::io::{Read, Write};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use serialport::{SerialPort, TTYPort};
+
+use crate::protocol::{encode, Decoder, Message, Packet};
+
+const RECONNECT_INTERVAL: Duration = Duration::from_millis(100);
+const IO_TIMEOUT: Duration = Duration::from_millis(5);
+
+pub struct SerialLink {
+    path: PathBuf,
+    baud: u32,
+    port: Option<TTYPort>,
+    decoder: Decoder,
+    tx_seq: u32,
+    last_attempt: Option<Instant>,
+    pub reconnects: u64,
+    was_open: bool,
+}
+
+impl SerialLink {
+    pub fn new(path: PathBuf, baud: u32) -> Self {
+        Self {
+            path,
+            baud,
+            port: None,
+            decoder: Decoder::new(),
+            tx_seq: 0,
+            last_attempt: None,
+            reconnects: 0,
+            was_open: false,
+        }
+    }
+
+    pub fn is_open(&self) -> bool {
+        self.port.is_some()
+    }
+
+    pub fn decoder_errors(&self) -> u64 {
+        self.decoder.counters.errors()
+    }
+
+    /// Tries to (re)open the port, at most once per reconnect interval.
+    pub fn ensure_open(&mut self, now: Instant) {
+        if self.port.is_some() {
+            return;
+        }
+        if self
+            .last_attempt
+            .is_some_and(|t| now.duration_since(t) < RECONNECT_INTERVAL)
+        {
+            return;
+        }
+        self.last_attempt = Some(now);
+        let path = self.path.to_string_lossy().into_owned();
+        match serialport::new(&path, self.baud)
+            .timeout(IO_TIMEOUT)
+            // A restarted coilbus must be able to reopen the same device.
+            .exclusive(false)
+            .open_native()
+        {
+            Ok(port) => {
+                if self.was_open {
+                    self.reconnects += 1;
+                }
+                self.was_open = true;
+                tracing::info!(port = %path, "serial link open");
+                self.port = Some(port);
+            }
+            Err(e) => tracing::debug!(port = %path, "serial open failed: {e}"),
+        }
+    }
+
+    fn drop_port(&mut self, why: &std::io::Error) {
+        tracing::warn!(port = %self.path.display(), "serial link lost: {why}");
+        self.port = None;
+    }
+
+    /// Encodes and writes one message; false (and the port closed for reconnect) on failure.
+    pub fn send(&mut self, message: &Message) -> bool {
+        let Some(port) = self.port.as_mut() else {
+            return false;
+        };
+        self.tx_seq = self.tx_seq.wrapping_add(1);
+        let bytes = encode(&Packet {
+            seq: self.tx_seq,
+            message: message.clone(),
+        });
+        match port.write_all(&bytes) {
+            Ok(()) => true,
+            Err(e) => {
+                self.drop_port(&e);
+                false
+            }
+        }
+    }
+
+    /// Reads whatever is waiting, without blocking, and returns decoded packets.
+    pub fn poll(&mut self) -> Vec<Packet> {
+        let Some(port) = self.port.as_mut() else {
+            return Vec::new();
+        };
+        let waiting = match port.bytes_to_read() {
+            Ok(n) => n as usize,
+            Err(e) => {
+                let e = std::io::Error::other(e.to_string());
+                self.drop_port(&e);
+                return Vec::new();
+            }
+        };
+        if waiting == 0 {
+            return Vec::new();
+        }
+        let mut buf = vec![0u8; waiting.min(64 * 1024)];
+        match port.read(&mut buf) {
+            Ok(n) => self.decoder.push(&buf[..n]),
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Vec::new(),
+            Err(e) => {
+                self.drop_port(&e);
+                Vec::new()
+            }
+        }
+    }
+}

@@ -1,0 +1,285 @@
+//! Force controllers of paper Sec. II-C, each a small type behind one trait. They see only what
+//! the rig sees: the estimated pose (via position/velocity estimates), the reference, and the
+//! steady-map flow estimate. Gains default to the paper's values (RIG.md).
+
+use nalgebra::Vector2;
+use serde::{Deserialize, Serialize};
+
+use crate::reference::ReferenceSample;
+
+/// What a controller knows at one step.
+#[derive(Debug, Clone, Copy)]
+pub struct ControlInput {
+    /// Time since the previous step (from capture timestamps, never the wall clock).
+    pub dt_s: f64,
+    pub position_m: Vector2<f64>,
+    /// Estimated robot velocity (filtered finite differences of poses).
+    pub velocity_mps: Vector2<f64>,
+    pub reference: ReferenceSample,
+    /// Steady-map flow at the robot (flow service).
+    pub flow_mps: Vector2<f64>,
+    /// In the high-disturbance zone of the flow map.
+    pub high_disturbance: bool,
+}
+
+/// Internal signals worth logging.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ControlTerms {
+    pub error_m: Vector2<f64>,
+    pub error_rate_mps: Vector2<f64>,
+    pub sliding_surface: Vector2<f64>,
+    pub disturbance_estimate_n: Vector2<f64>,
+}
+
+pub trait Controller: Send {
+    fn name(&self) -> &'static str;
+    /// Numeric id carried in `CoilCommand::controller_id`.
+    fn id(&self) -> u32;
+    /// Desired planar force (N) for this step.
+    fn update(&mut self, input: &ControlInput) -> (Vector2<f64>, ControlTerms);
+    /// Forget integrators and filters (after a hold or a restart of the loop).
+    fn reset(&mut self);
+}
+
+/// The nominal model every controller may use: mass and the paper's linear drag.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NominalModel {
+    pub mass_kg: f64,
+    /// c_t of paper Eq. 7 for the scenario's viscosity.
+    pub linear_drag_n_s_per_m: f64,
+}
+
+/// PID with flow feedforward (paper Eq. 15–16): F = Kp e + Ki ∫e + Kd ė − c_t V.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PidGains {
+    pub kp_n_per_m: f64,
+    pub ki_n_per_m_s: f64,
+    pub kd_n_s_per_m: f64,
+    /// Anti-windup bound on |∫e| per axis (m·s).
+    pub integral_limit_m_s: f64,
+}
+
+impl Default for PidGains {
+    fn default() -> Self {
+        Self {
+            kp_n_per_m: 5e-2,
+            ki_n_per_m_s: 5e-3,
+            kd_n_s_per_m: 8e-3,
+            integral_limit_m_s: 0.05,
+        }
+    }
+}
+
+pub struct Pid {
+    gains: PidGains,
+    model: NominalModel,
+    integral: Vector2<f64>,
+}
+
+impl Pid {
+    pub fn new(gains: PidGains, model: NominalModel) -> Self {
+        Self {
+            gains,
+            model,
+            integral: Vector2::zeros(),
+        }
+    }
+}
+
+impl Controller for Pid {
+    fn name(&self) -> &'static str {
+        "pid"
+    }
+    fn id(&self) -> u32 {
+        1
+    }
+    fn update(&mut self, input: &ControlInput) -> (Vector2<f64>, ControlTerms) {
+        let e = input.reference.position_m - input.position_m;
+        let e_dot = input.reference.velocity_mps - input.velocity_mps;
+        let limit = self.gains.integral_limit_m_s;
+        self.integral = (self.integral + e * input.dt_s).map(|v| v.clamp(-limit, limit));
+        let force = e * self.gains.kp_n_per_m
+            + self.integral * self.gains.ki_n_per_m_s
+            + e_dot * self.gains.kd_n_s_per_m
+            - input.flow_mps * self.model.linear_drag_n_s_per_m;
+        (
+            force,
+            ControlTerms {
+                error_m: e,
+                error_rate_mps: e_dot,
+                ..Default::default()
+            },
+        )
+    }
+    fn reset(&mut self) {
+        self.integral = Vector2::zeros();
+    }
+}
+
+/// SMC-DOB gains (paper Eq. 8–14). K1..K3 are not given in the paper; ours set the nominal
+/// error dynamics to ω_n = sqrt(K2/K3) ≈ 12.6 rad/s (2 Hz) with ζ = K1/(2 sqrt(K2 K3)) = 1.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SmcGains {
+    pub gamma: f64,
+    pub lambda: f64,
+    pub k1: f64,
+    pub k2: f64,
+    pub k3: f64,
+    /// Switching gain K4 (N).
+    pub k4_n: f64,
+    /// DOB filter time constant η (s).
+    pub eta_s: f64,
+    /// Boundary layer φ (m).
+    pub phi_m: f64,
+    pub wp: f64,
+    pub wr: f64,
+    /// Run with the disturbance observer (false = the paper's "SMC without DOB" ablation).
+    pub use_dob: bool,
+}
+
+impl Default for SmcGains {
+    fn default() -> Self {
+        Self {
+            gamma: 2.0,
+            lambda: 1.0,
+            k1: 25.1,
+            k2: 158.0,
+            k3: 1.0,
+            k4_n: 2.0e-4,
+            eta_s: 6.0e-2,
+            phi_m: 9.0e-3,
+            wp: 1.0,
+            wr: 1.0,
+            use_dob: true,
+        }
+    }
+}
+
+pub struct SmcDob {
+    gains: SmcGains,
+    model: NominalModel,
+    p: Vector2<f64>,
+    r: Vector2<f64>,
+    previous_force: Vector2<f64>,
+    initialized: bool,
+}
+
+impl SmcDob {
+    pub fn new(gains: SmcGains, model: NominalModel) -> Self {
+        Self {
+            gains,
+            model,
+            p: Vector2::zeros(),
+            r: Vector2::zeros(),
+            previous_force: Vector2::zeros(),
+            initialized: false,
+        }
+    }
+
+    /// C(ẋ, V) = c_t (ẋ + V) exactly as the paper writes it (Eq. 12–13). With the DOB on, the
+    /// C terms of d̂ and u_eq cancel; without it, −C adds damping and cancels the flow push.
+    fn modeled_drag(&self, velocity: &Vector2<f64>, flow: &Vector2<f64>) -> Vector2<f64> {
+        (velocity + flow) * self.model.linear_drag_n_s_per_m
+    }
+}
+
+impl Controller for SmcDob {
+    fn name(&self) -> &'static str {
+        if self.gains.use_dob {
+            "smc-dob"
+        } else {
+            "smc"
+        }
+    }
+    fn id(&self) -> u32 {
+        if self.gains.use_dob {
+            2
+        } else {
+            3
+        }
+    }
+    fn update(&mut self, input: &ControlInput) -> (Vector2<f64>, ControlTerms) {
+        let g = &self.gains;
+        let m = self.model.mass_kg;
+        let e = input.reference.position_m - input.position_m;
+        let e_dot = input.reference.velocity_mps - input.velocity_mps;
+        let s = e_dot * g.gamma + e * g.lambda;
+        let c = self.modeled_drag(&input.velocity_mps, &input.flow_mps);
+
+        if !self.initialized {
+            self.p = e_dot;
+            self.r = Vector2::zeros();
+            self.initialized = true;
+        }
+        // Exact discretisation of the first-order filters ṗ = −(W/η)(p − ė), ṙ = −(W/η)(r − F_prev).
+        let alpha_p = 1.0 - (-g.wp * input.dt_s / g.eta_s).exp();
+        let alpha_r = 1.0 - (-g.wr * input.dt_s / g.eta_s).exp();
+        let d_hat = if g.use_dob {
+            let filtered_derivative = (self.p - e_dot) * (g.wp / g.eta_s);
+            let estimate = filtered_derivative * m - c - self.r;
+            self.p += (e_dot - self.p) * alpha_p;
+            self.r += (self.previous_force - self.r) * alpha_r;
+            estimate
+        } else {
+            Vector2::zeros()
+        };
+        let u_eq = (e_dot * g.k1 + e * g.k2) * (m / g.k3) + input.reference.acceleration_mps2 * m - c;
+        let u_sw = s.map(|v| g.k4_n * (v / g.phi_m).tanh());
+        let force = -d_hat + u_eq + u_sw;
+        self.previous_force = force;
+        (
+            force,
+            ControlTerms {
+                error_m: e,
+                error_rate_mps: e_dot,
+                sliding_surface: s,
+                disturbance_estimate_n: d_hat,
+            },
+        )
+    }
+    fn reset(&mut self) {
+        self.initialized = false;
+        self.p = Vector2::zeros();
+        self.r = Vector2::zeros();
+        self.previous_force = Vector2::zeros();
+    }
+}
+
+/// Controllers selectable by name in a scenario's `[control]` table.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum ControllerKind {
+    #[default]
+    Pid,
+    SmcDob,
+    Smc,
+}
+
+impl ControllerKind {
+    pub fn build(
+        self,
+        pid: &PidGains,
+        smc: &SmcGains,
+        model: NominalModel,
+    ) -> Box<dyn Controller> {
+        match self {
+            Self::Pid => Box::new(Pid::new(pid.clone(), model)),
+            Self::SmcDob => Box::new(SmcDob::new(
+                SmcGains {
+                    use_dob: true,
+                    ..smc.clone()
+                },
+                model,
+            )),
+            Self::Smc => Box::new(SmcDob::new(
+                SmcGains {
+                    use_dob: false,
+                    ..smc.clone()
+                },
+                model,
+            )),
+        }
+    }
+}

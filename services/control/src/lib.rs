@@ -1,0 +1,419 @@
+//! control: Pose + FlowEstimate in, CoilCommand out. The loop logic (`ControlLoop`) is free of
+//! ports so it is tested directly and reused by in-process runs; `run` wires it to iceoryx2.
+//! Safety: invalid, non-finite, out-of-canal or physically impossible poses never drive the
+//! coils; the loop holds the orientation field briefly, then goes safe (zero currents).
+
+pub mod controllers;
+pub mod reference;
+
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use fieldmaps::allocation::{actuation_matrix, allocate_limited, DEFAULT_PLANAR_COILS};
+use fieldmaps::coils::CoilSystem;
+use fieldmaps::phantom::Phantom;
+use fieldmaps::physics;
+use fieldmaps::rig::{CoilLimits, RobotParams};
+use millinav_kit::iceoryx2::prelude::*;
+use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
+use millinav_kit::ports::{Inbox, Outbox};
+use millinav_kit::recording;
+use millinav_kit::rerun;
+use millinav_kit::scenario::Scenario;
+use millinav_kit::Runtime;
+use nalgebra::{DVector, Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+use shm_schemas::{
+    deadlines, services, zone, CoilCommand, ControlMode, FlowEstimate, Pose, COIL_COUNT,
+};
+
+use crate::controllers::{
+    ControlInput, ControlTerms, Controller, ControllerKind, NominalModel, PidGains, SmcGains,
+};
+use crate::reference::Reference;
+
+/// `[control]` section of a scenario.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ControlConfig {
+    pub controller: ControllerKind,
+    pub pid: PidGains,
+    pub smc: SmcGains,
+    /// Heading of the orientation field (deg from +x; the paper fixes 45° in static tests).
+    pub field_heading_deg: f64,
+    /// Magnitude of the orientation field.
+    pub field_magnitude_mt: f64,
+    /// ω0 of paper Eq. 2 (N/T): weight of the field rows against the force rows.
+    pub omega0_n_per_t: f64,
+    /// After the last good pose, hold the field this long, then go safe.
+    pub hold_timeout_ms: f64,
+    /// Fastest believable robot speed; larger pose jumps are rejected.
+    pub max_speed_mps: f64,
+    /// Time constant of the velocity estimate's low-pass filter.
+    pub velocity_filter_ms: f64,
+    pub limits: CoilLimits,
+}
+
+impl Default for ControlConfig {
+    fn default() -> Self {
+        Self {
+            controller: ControllerKind::Pid,
+            pid: PidGains::default(),
+            smc: SmcGains::default(),
+            field_heading_deg: 45.0,
+            field_magnitude_mt: 1.0,
+            omega0_n_per_t: 0.05,
+            hold_timeout_ms: 300.0,
+            max_speed_mps: 0.3,
+            velocity_filter_ms: 30.0,
+            limits: CoilLimits::default(),
+        }
+    }
+}
+
+/// One control decision, with what went into it (for logging and tests).
+#[derive(Debug, Clone)]
+pub struct Decision {
+    pub command: CoilCommand,
+    pub terms: ControlTerms,
+    pub reference_m: Vector2<f64>,
+    pub finished: bool,
+    /// Why the pose was not used, if it was not.
+    pub rejected: Option<&'static str>,
+}
+
+/// Port-free control loop: feed it poses (with their flow estimate), get commands.
+pub struct ControlLoop {
+    pub config: ControlConfig,
+    pub reference: Reference,
+    controller: Box<dyn Controller>,
+    coils: CoilSystem,
+    phantom: Phantom,
+    robot: RobotParams,
+    incarnation: u64,
+    last_good: Option<(u64, Vector2<f64>)>,
+    velocity: Vector2<f64>,
+    last_mode: ControlMode,
+}
+
+impl ControlLoop {
+    pub fn new(
+        config: ControlConfig,
+        reference: Reference,
+        viscosity_pa_s: f64,
+        incarnation: u64,
+    ) -> Self {
+        let robot = RobotParams::default();
+        let model = NominalModel {
+            mass_kg: robot.mass_kg,
+            linear_drag_n_s_per_m: physics::translational_damping(
+                viscosity_pa_s,
+                robot.length_m,
+                robot.diameter_m / 2.0,
+            ),
+        };
+        let controller = config.controller.build(&config.pid, &config.smc, model);
+        Self {
+            config,
+            reference,
+            controller,
+            coils: CoilSystem::paper_rig(),
+            phantom: Phantom::default_heart(),
+            robot,
+            incarnation,
+            last_good: None,
+            velocity: Vector2::zeros(),
+            last_mode: ControlMode::Safe,
+        }
+    }
+
+    pub fn controller_name(&self) -> &'static str {
+        self.controller.name()
+    }
+
+    fn desired_field(&self) -> Vector2<f64> {
+        let h = self.config.field_heading_deg.to_radians();
+        Vector2::new(h.cos(), h.sin()) * (self.config.field_magnitude_mt * 1e-3)
+    }
+
+    /// Why a pose cannot be used, if it cannot.
+    fn check_pose(&self, pose: &Pose, t_ns: u64) -> Option<&'static str> {
+        if !pose.valid {
+            return Some("pose flagged invalid by vision");
+        }
+        if !pose.is_usable() {
+            return Some("pose holds non-finite numbers");
+        }
+        let p = Vector2::new(pose.position_m[0], pose.position_m[1]);
+        if !self.phantom.contains(&p) {
+            return Some("pose outside the canal");
+        }
+        if let Some((t_prev, p_prev)) = self.last_good {
+            let dt = t_ns.saturating_sub(t_prev) as f64 * 1e-9;
+            let reach = self.config.max_speed_mps * dt + 3e-3;
+            if (p - p_prev).norm() > reach {
+                return Some("pose jumped farther than the robot can move");
+            }
+        }
+        None
+    }
+
+    /// Currents for a desired force and the orientation field at the robot's pose.
+    fn allocate(&self, position: &Vector2<f64>, heading: f64, force: &Vector2<f64>) -> [f64; COIL_COUNT] {
+        let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
+        let p3 = Vector3::new(position.x, position.y, 0.0);
+        let omega0 = self.config.omega0_n_per_t;
+        let a = actuation_matrix(&self.coils, &p3, &moment, &DEFAULT_PLANAR_COILS, omega0);
+        let b = self.desired_field();
+        let c = DVector::from_vec(vec![force.x, force.y, omega0 * b.x, omega0 * b.y]);
+        let mut currents = [0.0; COIL_COUNT];
+        if let Ok(allocation) = allocate_limited(&a, &c, &self.config.limits) {
+            for (k, &id) in DEFAULT_PLANAR_COILS.iter().enumerate() {
+                currents[id] = allocation.currents_a[k];
+            }
+        }
+        currents
+    }
+
+    /// One step: the command for `pose` given the flow estimate made for it (if any).
+    pub fn step(&mut self, pose: &Pose, flow: Option<&FlowEstimate>) -> Decision {
+        let t_ns = pose.capture_time_ns;
+        let t = t_ns as f64 * 1e-9;
+        let reference = self.reference.sample(t);
+        let mut command = CoilCommand {
+            frame_seq: pose.frame_seq,
+            frame_incarnation: pose.frame_incarnation,
+            capture_time_ns: t_ns,
+            control_incarnation: self.incarnation,
+            controller_id: self.controller.id(),
+            ..Default::default()
+        };
+        let rejected = self.check_pose(pose, t_ns);
+        if let Some(why) = rejected {
+            let since_good = self
+                .last_good
+                .map(|(t_prev, _)| t_ns.saturating_sub(t_prev) as f64 * 1e-6);
+            let hold = since_good.is_some_and(|ms| ms <= self.config.hold_timeout_ms);
+            if hold {
+                let (_, p) = self.last_good.unwrap_or((0, Vector2::zeros()));
+                command.mode = ControlMode::Hold as u32;
+                let heading = self.config.field_heading_deg.to_radians();
+                command.currents_a = self.allocate(&p, heading, &Vector2::zeros());
+            } else {
+                command.mode = ControlMode::Safe as u32;
+            }
+            self.last_mode = ControlMode::from_u32(command.mode).unwrap_or(ControlMode::Safe);
+            self.controller.reset();
+            return Decision {
+                command,
+                terms: ControlTerms::default(),
+                reference_m: reference.position_m,
+                finished: reference.finished,
+                rejected: Some(why),
+            };
+        }
+        let position = Vector2::new(pose.position_m[0], pose.position_m[1]);
+        let dt = match self.last_good {
+            Some((t_prev, p_prev)) if t_ns > t_prev && self.last_mode == ControlMode::Track => {
+                let dt = (t_ns - t_prev) as f64 * 1e-9;
+                let raw = (position - p_prev) / dt;
+                let tau = (self.config.velocity_filter_ms * 1e-3).max(1e-6);
+                self.velocity += (raw - self.velocity) * (1.0 - (-dt / tau).exp());
+                dt
+            }
+            Some((t_prev, _)) if t_ns == t_prev => 0.0,
+            _ => {
+                self.velocity = Vector2::zeros();
+                0.0
+            }
+        };
+        self.last_good = Some((t_ns, position));
+        let (flow_mps, high_disturbance) = match flow {
+            Some(f) if f.valid && f.frame_seq == pose.frame_seq => (
+                Vector2::new(f.velocity_mps[0], f.velocity_mps[1]),
+                f.zone_flags & zone::HIGH_DISTURBANCE != 0,
+            ),
+            _ => (Vector2::zeros(), false),
+        };
+        let input = ControlInput {
+            dt_s: dt,
+            position_m: position,
+            velocity_mps: self.velocity,
+            reference,
+            flow_mps,
+            high_disturbance,
+        };
+        let (force, terms) = self.controller.update(&input);
+        command.mode = ControlMode::Track as u32;
+        command.force_des_n = [force.x, force.y];
+        let field = self.desired_field();
+        command.field_des_t = [field.x, field.y];
+        command.currents_a = self.allocate(&position, pose.heading_rad, &force);
+        self.last_mode = ControlMode::Track;
+        Decision {
+            command,
+            terms,
+            reference_m: reference.position_m,
+            finished: reference.finished,
+            rejected: None,
+        }
+    }
+}
+
+/// Builds the loop a scenario describes.
+pub fn build_loop(scenario: &Scenario, incarnation: u64) -> anyhow::Result<ControlLoop> {
+    let config: ControlConfig = scenario.section("control")?;
+    let reference = Reference::new(
+        &scenario.waypoints_m(),
+        scenario.trajectory.speed_mm_s * 1e-3,
+        scenario.trajectory.start_time_s,
+    )?;
+    Ok(ControlLoop::new(
+        config,
+        reference,
+        scenario.viscosity_pa_s(),
+        incarnation,
+    ))
+}
+
+fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
+    let e = d.terms.error_m * 1e3;
+    recording::scalar(rec, "control/error_mm/x", e.x);
+    recording::scalar(rec, "control/error_mm/y", e.y);
+    recording::scalar(rec, "control/error_mm/norm", e.norm());
+    recording::scalar(rec, "control/error_rate_mm_s/x", d.terms.error_rate_mps.x * 1e3);
+    recording::scalar(rec, "control/error_rate_mm_s/y", d.terms.error_rate_mps.y * 1e3);
+    recording::scalar(rec, "control/sliding_surface/x", d.terms.sliding_surface.x);
+    recording::scalar(rec, "control/sliding_surface/y", d.terms.sliding_surface.y);
+    recording::scalar(rec, "control/d_hat_n/x", d.terms.disturbance_estimate_n.x);
+    recording::scalar(rec, "control/d_hat_n/y", d.terms.disturbance_estimate_n.y);
+    recording::scalar(rec, "control/force_des_n/x", d.command.force_des_n[0]);
+    recording::scalar(rec, "control/force_des_n/y", d.command.force_des_n[1]);
+    recording::scalar(rec, "control/mode", f64::from(d.command.mode));
+    for (i, c) in d.command.currents_a.iter().enumerate() {
+        recording::scalar(rec, &format!("control/current_a/{i}"), *c);
+    }
+    let _ = rec.log(
+        "world/reference",
+        &rerun::Points2D::new([[(d.reference_m.x * 1e3) as f32, (d.reference_m.y * 1e3) as f32]])
+            .with_radii([0.8]),
+    );
+    if pose.valid {
+        let _ = rec.log(
+            "world/robot/heading",
+            &rerun::Arrows2D::from_vectors([[
+                (pose.heading_rad.cos() * 4.0) as f32,
+                (pose.heading_rad.sin() * 4.0) as f32,
+            ]])
+            .with_origins([[
+                (pose.position_m[0] * 1e3) as f32,
+                (pose.position_m[1] * 1e3) as f32,
+            ]]),
+        );
+    }
+}
+
+/// Waits (bounded) for the flow estimate made for `frame_seq`.
+fn flow_for(
+    flows: &Inbox<FlowEstimate>,
+    cache: &mut Vec<FlowEstimate>,
+    frame_seq: u64,
+    timeout: Duration,
+) -> anyhow::Result<Option<FlowEstimate>> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        cache.extend(flows.receive_all()?);
+        // Keep the cache small: only recent estimates can match a new pose.
+        if cache.len() > 16 {
+            cache.drain(..cache.len() - 16);
+        }
+        if let Some(found) = cache.iter().rev().find(|f| f.frame_seq == frame_seq) {
+            return Ok(Some(*found));
+        }
+        let now = Instant::now();
+        if now >= deadline {
+            return Ok(None);
+        }
+        let _ = flows.listener.timed_wait(|_| {}, deadline - now);
+    }
+}
+
+/// The control process loop.
+pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
+    let mut control = build_loop(scenario, rt.env.incarnation)?;
+    tracing::info!(controller = control.controller_name(), "control ready");
+    let path: Vec<[f32; 2]> = control
+        .reference
+        .waypoints()
+        .iter()
+        .map(|p| [(p.x * 1e3) as f32, (p.y * 1e3) as f32])
+        .collect();
+    let _ = rt
+        .rec
+        .log_static("world/planned_path", &rerun::LineStrips2D::new([path]));
+    let poses = Inbox::<Pose>::new(&rt.node, services::POSE)?;
+    let flows = Inbox::<FlowEstimate>::new(&rt.node, services::FLOW)?;
+    let commands = Outbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
+    let mut flow_cache = Vec::new();
+    let mut flow_misses: u64 = 0;
+
+    let waitset = WaitSetBuilder::new()
+        .create::<ipc::Service>()
+        .map_err(millinav_kit::iox("waitset"))?;
+    let pose_guard = waitset
+        .attach_deadline(&poses.listener, deadlines::POSE)
+        .map_err(millinav_kit::iox("attach pose deadline"))?;
+    let _tick = waitset
+        .attach_interval(deadlines::HEARTBEAT_PERIOD)
+        .map_err(millinav_kit::iox("attach tick"))?;
+    loop {
+        let mut missed = false;
+        let result = waitset
+            .wait_and_process_once_with_timeout(
+                |id| {
+                    if id.has_missed_deadline(&pose_guard) {
+                        missed = true;
+                    }
+                    CallbackProgression::Continue
+                },
+                Duration::from_millis(100),
+            )
+            .map_err(millinav_kit::iox("waitset"))?;
+        if matches!(
+            result,
+            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
+        ) {
+            break;
+        }
+        if missed {
+            rt.heartbeat.deadline_misses += 1;
+            tracing::debug!("no pose within {:?}", deadlines::POSE);
+        }
+        rt.heartbeat.beat();
+        commands.update_connections();
+        rt.heartbeat.update_connections();
+        let Some(pose) = poses.latest()? else {
+            continue;
+        };
+        let flow = flow_for(&flows, &mut flow_cache, pose.frame_seq, deadlines::FLOW_FOR_POSE)?;
+        if flow.is_none() {
+            flow_misses += 1;
+            if flow_misses == 1 || flow_misses % 100 == 0 {
+                tracing::warn!(seq = pose.frame_seq, flow_misses, "no flow estimate for pose");
+            }
+        }
+        let decision = control.step(&pose, flow.as_ref());
+        commands.send(decision.command)?;
+        recording::set_time(&rt.rec, pose.capture_time_ns, pose.frame_seq);
+        log_decision(&rt.rec, &pose, &decision);
+    }
+    let _ = rt.rec.flush_blocking();
+    Ok(())
+}
+
+pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()> {
+    let mut rt = Runtime::start(shm_schemas::ServiceId::Control)?;
+    let scenario = Scenario::load(scenario_path)
+        .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
+    run(&mut rt, &scenario)
+}

@@ -1,0 +1,222 @@
+//! flow: the controller's flow knowledge, as in the paper: a steady CFD map looked up at the
+//! robot's estimated position. It never sees the true (pulsatile, perturbed) flow.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use fieldmaps::flowmap::FlowMap;
+use millinav_kit::iceoryx2::prelude::*;
+use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
+use millinav_kit::ports::{Inbox, Outbox};
+use millinav_kit::recording;
+use millinav_kit::rerun;
+use millinav_kit::scenario::Scenario;
+use millinav_kit::Runtime;
+use nalgebra::Vector2;
+use serde::{Deserialize, Serialize};
+use shm_schemas::{deadlines, services, zone, FlowEstimate, Pose};
+
+/// `[flow]` section of a scenario.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FlowConfig {
+    /// Steady flow map (relative to the scenario file); none means static fluid.
+    pub map: Option<PathBuf>,
+    /// Band of y (mm) where the inlet streams converge at the narrowing (paper: 0 to −10 mm).
+    pub high_disturbance_y_mm: [f64; 2],
+    /// Band of y (mm) of the recirculation zone (paper: 10 to −5 mm).
+    pub recirculation_y_mm: [f64; 2],
+    /// Spacing of the arrows logged once to the recording (mm).
+    pub arrow_spacing_mm: f64,
+}
+
+impl Default for FlowConfig {
+    fn default() -> Self {
+        Self {
+            map: None,
+            high_disturbance_y_mm: [-10.0, 0.0],
+            recirculation_y_mm: [-5.0, 10.0],
+            arrow_spacing_mm: 4.0,
+        }
+    }
+}
+
+/// Looks up the steady map and classifies the zone at a position.
+pub struct FlowEstimator {
+    pub map: FlowMap,
+    pub config: FlowConfig,
+}
+
+impl FlowEstimator {
+    pub fn new(map: FlowMap, config: FlowConfig) -> Self {
+        Self { map, config }
+    }
+
+    pub fn estimate(&self, pose: &Pose) -> FlowEstimate {
+        let mut estimate = FlowEstimate {
+            frame_seq: pose.frame_seq,
+            frame_incarnation: pose.frame_incarnation,
+            capture_time_ns: pose.capture_time_ns,
+            ..Default::default()
+        };
+        if !pose.is_usable() {
+            return estimate;
+        }
+        let p = Vector2::new(pose.position_m[0], pose.position_m[1]);
+        let v = self.map.sample(&p);
+        let y_mm = p.y * 1e3;
+        let within = |band: [f64; 2]| y_mm >= band[0].min(band[1]) && y_mm <= band[0].max(band[1]);
+        let moving = self.map.peak_speed() > 0.0;
+        let mut flags = 0;
+        if !self.map.covers(&p) {
+            flags |= zone::OUTSIDE_MAP;
+        }
+        if moving && within(self.config.high_disturbance_y_mm) {
+            flags |= zone::HIGH_DISTURBANCE;
+        }
+        if moving && within(self.config.recirculation_y_mm) {
+            flags |= zone::RECIRCULATION;
+        }
+        estimate.velocity_mps = [v.x, v.y];
+        estimate.speed_mps = v.norm();
+        estimate.zone_flags = flags;
+        estimate.valid = true;
+        estimate
+    }
+
+    /// The field as arrows (mm, mm/s scaled for display), logged once per run.
+    pub fn log_field(&self, rec: &rerun::RecordingStream) {
+        let step = (self.config.arrow_spacing_mm * 1e-3).max(1e-4);
+        let (mut origins, mut vectors) = (Vec::new(), Vec::new());
+        let x0 = self.map.origin_m.x;
+        let y0 = self.map.origin_m.y;
+        let x1 = x0 + (self.map.nx - 1) as f64 * self.map.spacing_m;
+        let y1 = y0 + (self.map.ny - 1) as f64 * self.map.spacing_m;
+        let mut y = y0;
+        while y <= y1 {
+            let mut x = x0;
+            while x <= x1 {
+                let v = self.map.sample(&Vector2::new(x, y));
+                if v.norm() > 1e-4 {
+                    origins.push([(x * 1e3) as f32, (y * 1e3) as f32]);
+                    // 1 cm/s drawn as 1 mm.
+                    vectors.push([(v.x * 100.0) as f32, (v.y * 100.0) as f32]);
+                }
+                x += step;
+            }
+            y += step;
+        }
+        let _ = rec.log_static(
+            "world/flow_field",
+            &rerun::Arrows2D::from_vectors(vectors).with_origins(origins),
+        );
+    }
+}
+
+pub fn load_estimator(scenario: &Scenario) -> anyhow::Result<FlowEstimator> {
+    let config: FlowConfig = scenario.section("flow")?;
+    let map = match &config.map {
+        None => FlowMap::zero(),
+        Some(path) => FlowMap::load(&scenario.resolve(path))?,
+    };
+    Ok(FlowEstimator::new(map, config))
+}
+
+/// The flow process loop.
+pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
+    let estimator = load_estimator(scenario)?;
+    estimator.log_field(&rt.rec);
+    let poses = Inbox::<Pose>::new(&rt.node, services::POSE)?;
+    let estimates = Outbox::<FlowEstimate>::new(&rt.node, services::FLOW)?;
+    let waitset = WaitSetBuilder::new()
+        .create::<ipc::Service>()
+        .map_err(millinav_kit::iox("waitset"))?;
+    let pose_guard = waitset
+        .attach_deadline(&poses.listener, deadlines::POSE)
+        .map_err(millinav_kit::iox("attach pose deadline"))?;
+    let _tick = waitset
+        .attach_interval(deadlines::HEARTBEAT_PERIOD)
+        .map_err(millinav_kit::iox("attach tick"))?;
+    loop {
+        let mut missed = false;
+        let result = waitset
+            .wait_and_process_once_with_timeout(
+                |id| {
+                    if id.has_missed_deadline(&pose_guard) {
+                        missed = true;
+                    }
+                    CallbackProgression::Continue
+                },
+                Duration::from_millis(100),
+            )
+            .map_err(millinav_kit::iox("waitset"))?;
+        if matches!(
+            result,
+            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
+        ) {
+            break;
+        }
+        if missed {
+            rt.heartbeat.deadline_misses += 1;
+        }
+        rt.heartbeat.beat();
+        estimates.update_connections();
+        rt.heartbeat.update_connections();
+        // Every pose gets its estimate: control waits for the one matching its pose.
+        for pose in poses.receive_all()? {
+            let estimate = estimator.estimate(&pose);
+            estimates.send(estimate)?;
+            if estimate.valid {
+                recording::set_time(&rt.rec, pose.capture_time_ns, pose.frame_seq);
+                let _ = rt.rec.log(
+                    "world/flow_at_robot",
+                    &rerun::Arrows2D::from_vectors([[
+                        (estimate.velocity_mps[0] * 100.0) as f32,
+                        (estimate.velocity_mps[1] * 100.0) as f32,
+                    ]])
+                    .with_origins([[
+                        (pose.position_m[0] * 1e3) as f32,
+                        (pose.position_m[1] * 1e3) as f32,
+                    ]]),
+                );
+                recording::scalar(&rt.rec, "flow/speed_mps", estimate.speed_mps);
+                recording::scalar(&rt.rec, "flow/zone_flags", f64::from(estimate.zone_flags));
+            }
+        }
+    }
+    let _ = rt.rec.flush_blocking();
+    Ok(())
+}
+
+pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()> {
+    let mut rt = Runtime::start(shm_schemas::ServiceId::Flow)?;
+    let scenario = Scenario::load(scenario_path)
+        .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
+    run(&mut rt, &scenario)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn invalid_pose_gets_invalid_estimate() {
+        let est = FlowEstimator::new(FlowMap::zero(), FlowConfig::default());
+        let pose = Pose {
+            valid: true,
+            position_m: [f64::NAN, 0.0],
+            ..Default::default()
+        };
+        assert!(!est.estimate(&pose).valid);
+        let ok = Pose {
+            valid: true,
+            frame_seq: 7,
+            ..Default::default()
+        };
+        let e = est.estimate(&ok);
+        assert!(e.valid);
+        assert_eq!(e.frame_seq, 7);
+        assert_eq!(e.zone_flags, 0);
+    }
+}

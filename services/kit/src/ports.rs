@@ -1,0 +1,310 @@
+//! Typed ports with the QoS every participant must agree on. A data service always comes with a
+//! companion event service so receivers can sleep in a WaitSet with a deadline.
+
+use std::fmt::Debug;
+use std::time::{Duration, Instant};
+
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::prelude::*;
+use iceoryx2::sample::Sample;
+use shm_schemas::{deadlines, services, FrameHeader, Heartbeat, ServiceId, FRAME_BYTES};
+
+use crate::{iox, KitError};
+
+/// Samples a slow subscriber may queue before the oldest is overwritten (latest wins).
+const SUBSCRIBER_BUFFER: usize = 4;
+const MAX_PUBLISHERS: usize = 16;
+const MAX_SUBSCRIBERS: usize = 12;
+const MAX_NODES: usize = 32;
+
+fn service_name(name: &str) -> Result<ServiceName, KitError> {
+    ServiceName::new(name).map_err(iox("service name"))
+}
+
+/// Opens (or creates) the event service that announces samples on `data_service`.
+pub fn open_event(
+    node: &Node<ipc::Service>,
+    event_service: &str,
+) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, KitError> {
+    node.service_builder(&service_name(event_service)?)
+        .event()
+        .max_notifiers(MAX_PUBLISHERS * 2)
+        .max_listeners(MAX_SUBSCRIBERS)
+        .max_nodes(MAX_NODES)
+        .open_or_create()
+        .map_err(iox(event_service))
+}
+
+fn open_pubsub<T: Debug + ZeroCopySend + 'static>(
+    node: &Node<ipc::Service>,
+    name: &str,
+) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>, KitError>
+{
+    node.service_builder(&service_name(name)?)
+        .publish_subscribe::<T>()
+        // No history: a restarted consumer must never act on a command from before it started.
+        .history_size(0)
+        .subscriber_max_buffer_size(SUBSCRIBER_BUFFER)
+        .enable_safe_overflow(true)
+        .max_publishers(MAX_PUBLISHERS)
+        .max_subscribers(MAX_SUBSCRIBERS)
+        .max_nodes(MAX_NODES)
+        .open_or_create()
+        .map_err(iox(name))
+}
+
+/// Publishes fixed-size messages and announces each one.
+pub struct Outbox<T: Debug + ZeroCopySend + 'static> {
+    publisher: Publisher<ipc::Service, T, ()>,
+    notifier: Notifier<ipc::Service>,
+}
+
+impl<T: Debug + ZeroCopySend + Copy + 'static> Outbox<T> {
+    pub fn new(node: &Node<ipc::Service>, name: &str) -> Result<Self, KitError> {
+        let publisher = open_pubsub::<T>(node, name)?
+            .publisher_builder()
+            .create()
+            .map_err(iox(name))?;
+        let notifier = open_event(node, &services::event_service_of(name))?
+            .notifier_builder()
+            .create()
+            .map_err(iox(name))?;
+        Ok(Self {
+            publisher,
+            notifier,
+        })
+    }
+
+    pub fn send(&self, value: T) -> Result<(), KitError> {
+        self.publisher.send_copy(value).map_err(iox("send"))?;
+        self.notifier.notify().map_err(iox("notify"))?;
+        Ok(())
+    }
+
+    /// Connects subscribers that appeared since the last call.
+    pub fn update_connections(&self) {
+        let _ = self.publisher.update_connections();
+    }
+}
+
+/// Receives fixed-size messages; its listener can be attached to a WaitSet.
+pub struct Inbox<T: Debug + ZeroCopySend + 'static> {
+    subscriber: Subscriber<ipc::Service, T, ()>,
+    pub listener: Listener<ipc::Service>,
+}
+
+impl<T: Debug + ZeroCopySend + Copy + 'static> Inbox<T> {
+    pub fn new(node: &Node<ipc::Service>, name: &str) -> Result<Self, KitError> {
+        let subscriber = open_pubsub::<T>(node, name)?
+            .subscriber_builder()
+            .create()
+            .map_err(iox(name))?;
+        let listener = open_event(node, &services::event_service_of(name))?
+            .listener_builder()
+            .create()
+            .map_err(iox(name))?;
+        Ok(Self {
+            subscriber,
+            listener,
+        })
+    }
+
+    /// Consumes pending event notifications (an undrained listener makes a WaitSet spin).
+    pub fn drain_events(&self) {
+        let _ = self.listener.try_wait(|_| {});
+    }
+
+    /// Every message queued since the last call, oldest first.
+    pub fn receive_all(&self) -> Result<Vec<T>, KitError> {
+        self.drain_events();
+        let mut out = Vec::new();
+        while let Some(sample) = self.subscriber.receive().map_err(iox("receive"))? {
+            out.push(*sample.payload());
+        }
+        Ok(out)
+    }
+
+    /// The newest queued message, dropping older ones.
+    pub fn latest(&self) -> Result<Option<T>, KitError> {
+        Ok(self.receive_all()?.pop())
+    }
+}
+
+/// Publishes camera frames: `[u8]` payload with a `FrameHeader`.
+pub struct FrameOutbox {
+    publisher: Publisher<ipc::Service, [u8], FrameHeader>,
+    notifier: Notifier<ipc::Service>,
+}
+
+fn open_frame_service(
+    node: &Node<ipc::Service>,
+) -> Result<
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, [u8], FrameHeader>,
+    KitError,
+> {
+    node.service_builder(&service_name(services::FRAME)?)
+        .publish_subscribe::<[u8]>()
+        .user_header::<FrameHeader>()
+        .history_size(0)
+        // Frames are large: keep only the newest two per subscriber.
+        .subscriber_max_buffer_size(2)
+        .enable_safe_overflow(true)
+        .max_publishers(MAX_PUBLISHERS)
+        .max_subscribers(MAX_SUBSCRIBERS)
+        .max_nodes(MAX_NODES)
+        .open_or_create()
+        .map_err(iox(services::FRAME))
+}
+
+impl FrameOutbox {
+    pub fn new(node: &Node<ipc::Service>) -> Result<Self, KitError> {
+        let publisher = open_frame_service(node)?
+            .publisher_builder()
+            .initial_max_slice_len(FRAME_BYTES)
+            .create()
+            .map_err(iox(services::FRAME))?;
+        let notifier = open_event(node, &services::event_service_of(services::FRAME))?
+            .notifier_builder()
+            .create()
+            .map_err(iox(services::FRAME))?;
+        Ok(Self {
+            publisher,
+            notifier,
+        })
+    }
+
+    /// Publishes `pixels` with `header`; `draw` may paint over the copied pixels in place.
+    pub fn send(
+        &self,
+        header: FrameHeader,
+        pixels: &[u8],
+        draw: impl FnOnce(&mut [u8]),
+    ) -> Result<(), KitError> {
+        let mut sample = self
+            .publisher
+            .loan_slice_uninit(pixels.len())
+            .map_err(iox("loan frame"))?;
+        *sample.user_header_mut() = header;
+        let mut sample = sample.write_from_slice(pixels);
+        draw(sample.payload_mut());
+        sample.send().map_err(iox("send frame"))?;
+        self.notifier.notify().map_err(iox("notify frame"))?;
+        Ok(())
+    }
+
+    pub fn update_connections(&self) {
+        let _ = self.publisher.update_connections();
+    }
+}
+
+/// Receives camera frames without copying them.
+pub struct FrameInbox {
+    subscriber: Subscriber<ipc::Service, [u8], FrameHeader>,
+    pub listener: Listener<ipc::Service>,
+}
+
+/// A received frame, borrowed from shared memory until dropped.
+pub type FrameSample = Sample<ipc::Service, [u8], FrameHeader>;
+
+impl FrameInbox {
+    pub fn new(node: &Node<ipc::Service>) -> Result<Self, KitError> {
+        let subscriber = open_frame_service(node)?
+            .subscriber_builder()
+            .create()
+            .map_err(iox(services::FRAME))?;
+        let listener = open_event(node, &services::event_service_of(services::FRAME))?
+            .listener_builder()
+            .create()
+            .map_err(iox(services::FRAME))?;
+        Ok(Self {
+            subscriber,
+            listener,
+        })
+    }
+
+    /// The newest frame, releasing any older queued ones.
+    pub fn latest(&self) -> Result<Option<FrameSample>, KitError> {
+        let _ = self.listener.try_wait(|_| {});
+        let mut newest = None;
+        while let Some(sample) = self.subscriber.receive().map_err(iox("receive frame"))? {
+            newest = Some(sample);
+        }
+        Ok(newest)
+    }
+}
+
+/// Signals liveness on the service's heartbeat event and publishes a `Heartbeat` record.
+pub struct HeartbeatSender {
+    service: ServiceId,
+    incarnation: u64,
+    notifier: Notifier<ipc::Service>,
+    health: Outbox<Heartbeat>,
+    last: Option<Instant>,
+    cycles: u64,
+    pub deadline_misses: u64,
+}
+
+impl HeartbeatSender {
+    pub fn new(
+        node: &Node<ipc::Service>,
+        service: ServiceId,
+        incarnation: u64,
+    ) -> Result<Self, KitError> {
+        let notifier = open_event(node, &service.heartbeat_service())?
+            .notifier_builder()
+            .create()
+            .map_err(iox("heartbeat"))?;
+        Ok(Self {
+            service,
+            incarnation,
+            notifier,
+            health: Outbox::new(node, services::HEALTH)?,
+            last: None,
+            cycles: 0,
+            deadline_misses: 0,
+        })
+    }
+
+    /// Counts a cycle and beats if the heartbeat period has passed. Cheap to call every cycle.
+    pub fn beat(&mut self) {
+        self.cycles += 1;
+        let due = self
+            .last
+            .is_none_or(|t| t.elapsed() >= deadlines::HEARTBEAT_PERIOD);
+        if !due {
+            return;
+        }
+        self.last = Some(Instant::now());
+        let _ = self.notifier.notify();
+        let _ = self.health.send(Heartbeat {
+            service: self.service as u32,
+            pid: std::process::id(),
+            incarnation: self.incarnation,
+            cycles: self.cycles,
+            deadline_misses: self.deadline_misses,
+            wall_time_ns: crate::clock::wall_ns(),
+        });
+    }
+
+    pub fn update_connections(&self) {
+        self.health.update_connections();
+    }
+}
+
+/// Listens to one service's heartbeat (used by the supervisor).
+pub fn heartbeat_listener(
+    node: &Node<ipc::Service>,
+    service: ServiceId,
+) -> Result<Listener<ipc::Service>, KitError> {
+    open_event(node, &service.heartbeat_service())?
+        .listener_builder()
+        .create()
+        .map_err(iox("heartbeat listener"))
+}
+
+/// Loop period used where a service has nothing better to wait on.
+pub const IDLE_POLL: Duration = Duration::from_millis(20);

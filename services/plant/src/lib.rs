@@ -1,0 +1,344 @@
+//! plant: the digital twin of the rig. It owns the physics (truth), renders the top camera,
+//! publishes frames and `PlantTruth`, and exposes an emulated Teensy on a pty pair that coilbus
+//! drives exactly like the real board. In lockstep mode it is the run's clock.
+
+pub mod model;
+pub mod render;
+pub mod teensy;
+
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use fieldmaps::coils::CoilSystem;
+use fieldmaps::flowmap::FlowMap;
+use fieldmaps::phantom::{ImageGeometry, Phantom};
+use fieldmaps::rig::{FluidParams, RobotParams};
+use millinav_kit::ports::{FrameOutbox, Outbox};
+use millinav_kit::recording;
+use millinav_kit::scenario::{ClockMode, Scenario};
+use millinav_kit::Runtime;
+use nalgebra::Vector2;
+use serde::{Deserialize, Serialize};
+use shm_schemas::{
+    deadlines, services, FrameHeader, PixelFormat, PlantTruth, COIL_COUNT, FRAME_CHANNELS,
+};
+
+use crate::model::{PlantModel, PlantPhysicsConfig, PlantState};
+use crate::render::Camera;
+use crate::teensy::EmulatedTeensy;
+
+/// `[plant]` section of a scenario.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PlantConfig {
+    /// Start position (mm); defaults to the first trajectory waypoint.
+    pub initial_position_mm: Option<[f64; 2]>,
+    pub initial_heading_deg: f64,
+    /// Standard deviation of camera pixel noise (8-bit levels).
+    pub camera_noise_std: f64,
+    /// Log the true pose every frame and a summary image every this many frames.
+    pub log_every_frames: u64,
+    pub physics: PlantPhysicsConfig,
+}
+
+impl Default for PlantConfig {
+    fn default() -> Self {
+        Self {
+            initial_position_mm: None,
+            initial_heading_deg: 45.0,
+            camera_noise_std: 3.0,
+            log_every_frames: 1,
+            physics: PlantPhysicsConfig::default(),
+        }
+    }
+}
+
+/// `[flow]` section as far as the plant is concerned: which steady map drives the true flow.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(default)]
+pub struct FlowMapChoice {
+    /// Path of a steady flow map (relative to the scenario file); none means static fluid.
+    pub map: Option<std::path::PathBuf>,
+}
+
+impl FlowMapChoice {
+    pub fn load(&self, scenario: &Scenario) -> anyhow::Result<FlowMap> {
+        match &self.map {
+            None => Ok(FlowMap::zero()),
+            Some(path) => Ok(FlowMap::load(&scenario.resolve(path))?),
+        }
+    }
+}
+
+/// Builds the twin's model for a scenario (shared with in-process experiment runs).
+pub fn build_model(scenario: &Scenario, config: &PlantConfig) -> anyhow::Result<PlantModel> {
+    let fluid = FluidParams {
+        viscosity_pa_s: scenario.viscosity_pa_s(),
+        density_kg_m3: scenario.fluid.density_kg_m3,
+    };
+    let flow: FlowMapChoice = scenario.section("flow")?;
+    Ok(PlantModel::new(
+        CoilSystem::paper_rig(),
+        RobotParams::default(),
+        &fluid,
+        Phantom::default_heart(),
+        flow.load(scenario)?,
+        config.physics.clone(),
+        scenario.run.seed,
+    ))
+}
+
+pub fn initial_state(scenario: &Scenario, config: &PlantConfig, model: &PlantModel) -> PlantState {
+    let start_mm = config
+        .initial_position_mm
+        .unwrap_or(scenario.trajectory.waypoints_mm[0]);
+    model.initial_state(
+        Vector2::new(start_mm[0] * 1e-3, start_mm[1] * 1e-3),
+        config.initial_heading_deg.to_radians(),
+    )
+}
+
+fn truth_of(state: &PlantState, frame_seq: u64, misses: u64) -> PlantTruth {
+    PlantTruth {
+        frame_seq,
+        sim_time_ns: millinav_kit::clock::secs_to_ns(state.time_s),
+        position_m: [state.position_m.x, state.position_m.y],
+        velocity_mps: [state.velocity_mps.x, state.velocity_mps.y],
+        heading_rad: state.heading_rad,
+        true_flow_mps: [state.last_true_flow_mps.x, state.last_true_flow_mps.y],
+        applied_currents_a: state.coil_currents_a,
+        magnetic_force_n: [state.last_magnetic_force_n.x, state.last_magnetic_force_n.y],
+        wall_contact: state.wall_contact,
+        lockstep_misses: misses,
+    }
+}
+
+fn log_truth(rec: &millinav_kit::rerun::RecordingStream, state: &PlantState, path: &mut Vec<[f32; 2]>) {
+    let p = [(state.position_m.x * 1e3) as f32, (state.position_m.y * 1e3) as f32];
+    path.push(p);
+    let _ = rec.log(
+        "world/robot/true_position",
+        &millinav_kit::rerun::Points2D::new([p]).with_radii([1.4]),
+    );
+    recording::scalar(rec, "plant/true_x_mm", state.position_m.x * 1e3);
+    recording::scalar(rec, "plant/true_y_mm", state.position_m.y * 1e3);
+    recording::scalar(rec, "plant/wall_contact", f64::from(u8::from(state.wall_contact)));
+    if path.len() % 25 == 0 {
+        let _ = rec.log(
+            "world/actual_path",
+            &millinav_kit::rerun::LineStrips2D::new([path.clone()]),
+        );
+    }
+}
+
+/// The plant process loop.
+pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
+    let config: PlantConfig = scenario.section("plant")?;
+    let model = build_model(scenario, &config)?;
+    let mut state = initial_state(scenario, &config, &model);
+    let geometry = ImageGeometry::default();
+    let mut render_rng = model::run_rng(scenario.run.seed, 1);
+    let camera = Camera::new(&model.phantom, geometry.clone(), &mut render_rng, config.camera_noise_std);
+    std::fs::create_dir_all(&rt.env.run_dir)?;
+    let mut teensy = EmulatedTeensy::start(
+        &rt.env.run_dir.join(millinav_coilbus::EMULATED_PORT_LINK),
+        &rt.env.run_dir.join("teensy_events.csv"),
+        deadlines::TEENSY_WATCHDOG,
+    )
+    .context("starting the emulated Teensy")?;
+    let frames = FrameOutbox::new(&rt.node)?;
+    let truth_out = Outbox::<PlantTruth>::new(&rt.node, services::PLANT_TRUTH)?;
+    let mut truth_csv = TruthCsv::create(&rt.env.run_dir.join(TRUTH_CSV))?;
+    let _ = rt.rec.log_static(
+        "world/canal",
+        &millinav_kit::rerun::Points2D::new(canal_outline(&camera)).with_radii([0.15]),
+    );
+
+    let frame_period = scenario.frame_period_s();
+    let incarnation = rt.env.incarnation;
+    let mut seq: u64 = 0;
+    let mut misses: u64 = 0;
+    let mut started = false;
+    let mut actual_path = Vec::new();
+    let wall_start = Instant::now();
+    tracing::info!(
+        mode = ?scenario.run.mode,
+        duration_s = scenario.run.duration_s,
+        "plant running"
+    );
+    let publish = |seq: u64, state: &PlantState, misses: u64, run_time_ns: u64| -> anyhow::Result<()> {
+        let header = FrameHeader {
+            seq,
+            incarnation,
+            capture_time_ns: run_time_ns,
+            width: geometry.width_px,
+            height: geometry.height_px,
+            stride: geometry.width_px * FRAME_CHANNELS,
+            pixel_format: PixelFormat::Rgb8 as u32,
+            mm_per_px: geometry.mm_per_px,
+            origin_x_mm: geometry.origin_x_mm,
+            origin_y_mm: geometry.origin_y_mm,
+        };
+        let mut rng = model::run_rng(scenario.run.seed, 1000 + seq);
+        frames.send(header, camera.background(seq), |rgb| {
+            camera.draw_capsule(
+                rgb,
+                &state.position_m,
+                state.heading_rad,
+                model.robot.length_m,
+                model.robot.diameter_m,
+                &mut rng,
+            )
+        })?;
+        truth_out.send(truth_of(state, seq, misses))?;
+        Ok(())
+    };
+
+    loop {
+        if rt.shutdown_requested() {
+            tracing::info!("plant: shutdown requested");
+            break;
+        }
+        let run_time_ns = match scenario.run.mode {
+            ClockMode::Lockstep => millinav_kit::clock::secs_to_ns(state.time_s),
+            ClockMode::Realtime => rt.env.run_clock_ns(),
+        };
+        publish(seq, &state, misses, run_time_ns)?;
+        truth_csv.append(&truth_of(&state, seq, misses))?;
+        recording::set_time(&rt.rec, millinav_kit::clock::secs_to_ns(state.time_s), seq);
+        if seq % config.log_every_frames.max(1) == 0 {
+            log_truth(&rt.rec, &state, &mut actual_path);
+        }
+        rt.heartbeat.beat();
+        frames.update_connections();
+        truth_out.update_connections();
+        rt.heartbeat.update_connections();
+
+        if state.time_s >= scenario.run.duration_s {
+            tracing::info!(
+                frames = seq,
+                misses,
+                wall_s = wall_start.elapsed().as_secs_f64(),
+                "run complete"
+            );
+            break;
+        }
+        let commanded: [f64; COIL_COUNT] = match scenario.run.mode {
+            ClockMode::Lockstep => {
+                let (outputs, in_time) =
+                    teensy.wait_for_frame(seq, deadlines::LOCKSTEP_COMMAND);
+                if !started {
+                    // Until the chain answers once, keep re-publishing frame 0: the run starts
+                    // when every process is up, not when the plant happens to be.
+                    if !in_time {
+                        continue;
+                    }
+                    started = true;
+                    tracing::info!(
+                        after_s = wall_start.elapsed().as_secs_f64(),
+                        "closed loop established"
+                    );
+                } else if !in_time {
+                    misses += 1;
+                    tracing::debug!(seq, "lockstep: command missed its deadline");
+                }
+                outputs.currents_a
+            }
+            ClockMode::Realtime => {
+                let next = wall_start + Duration::from_secs_f64((seq + 1) as f64 * frame_period);
+                if let Some(wait) = next.checked_duration_since(Instant::now()) {
+                    std::thread::sleep(wait);
+                }
+                teensy.outputs().currents_a
+            }
+        };
+        model.step(&mut state, &commanded, frame_period);
+        seq += 1;
+    }
+    teensy.stop();
+    truth_csv.flush()?;
+    let _ = rt.rec.flush_blocking();
+    Ok(())
+}
+
+/// File name of the ground-truth trace in a run directory.
+pub const TRUTH_CSV: &str = "truth.csv";
+
+/// Ground truth of every frame, for metrics after the run (never read by a controller).
+pub struct TruthCsv {
+    out: std::io::BufWriter<std::fs::File>,
+}
+
+impl TruthCsv {
+    pub const HEADER: &'static str =
+        "frame_seq,sim_time_s,x_m,y_m,vx_mps,vy_mps,heading_rad,flow_x_mps,flow_y_mps,wall_contact,max_abs_current_a,lockstep_misses";
+
+    pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
+        use std::io::Write;
+        // Append: a restarted plant continues the same trace.
+        let fresh = !path.exists();
+        let file = std::fs::OpenOptions::new().create(true).append(true).open(path)?;
+        let mut out = std::io::BufWriter::new(file);
+        if fresh {
+            writeln!(out, "{}", Self::HEADER)?;
+        }
+        Ok(Self { out })
+    }
+
+    pub fn append(&mut self, t: &PlantTruth) -> anyhow::Result<()> {
+        use std::io::Write;
+        let max_current = t.applied_currents_a.iter().fold(0.0f64, |m, c| m.max(c.abs()));
+        writeln!(
+            self.out,
+            "{},{:.6},{:.9},{:.9},{:.9},{:.9},{:.6},{:.9},{:.9},{},{:.6},{}",
+            t.frame_seq,
+            t.sim_time_ns as f64 * 1e-9,
+            t.position_m[0],
+            t.position_m[1],
+            t.velocity_mps[0],
+            t.velocity_mps[1],
+            t.heading_rad,
+            t.true_flow_mps[0],
+            t.true_flow_mps[1],
+            u8::from(t.wall_contact),
+            max_current,
+            t.lockstep_misses
+        )?;
+        Ok(())
+    }
+
+    pub fn flush(&mut self) -> anyhow::Result<()> {
+        use std::io::Write;
+        self.out.flush()?;
+        Ok(())
+    }
+}
+
+/// Canal boundary pixels as world points (mm), for the recording's map layer.
+fn canal_outline(camera: &Camera) -> Vec<[f32; 2]> {
+    let g = &camera.geometry;
+    let (w, h) = (g.width_px as usize, g.height_px as usize);
+    let mut points = Vec::new();
+    for row in (1..h - 1).step_by(2) {
+        for col in (1..w - 1).step_by(2) {
+            let inside = camera.canal_mask[row * w + col] > 0;
+            let edge = inside
+                && (camera.canal_mask[row * w + col + 1] == 0
+                    || camera.canal_mask[(row + 1) * w + col] == 0
+                    || camera.canal_mask[row * w + col - 1] == 0
+                    || camera.canal_mask[(row - 1) * w + col] == 0);
+            if edge {
+                let p = g.px_to_world(col as f64, row as f64);
+                points.push([(p.x * 1e3) as f32, (p.y * 1e3) as f32]);
+            }
+        }
+    }
+    points
+}
+
+pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()> {
+    let mut rt = Runtime::start(shm_schemas::ServiceId::Plant)?;
+    let scenario = Scenario::load(scenario_path)
+        .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
+    run(&mut rt, &scenario)
+}

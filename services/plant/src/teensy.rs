@@ -1,0 +1,244 @@
+//! The plant's emulated Teensy: the same serial protocol as the real board, on a pty pair whose
+//! slave side coilbus opens like any serial device. It applies `SetCurrents`, acknowledges, sends
+//! telemetry, and zeroes its outputs on its own watchdog when frames stop coming. Every frame it
+//! receives is appended to `teensy_events.csv` in the run directory (wall clock), so tests can
+//! observe exactly when currents reached zero.
+
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use millinav_coilbus::protocol::{
+    encode, ma_to_amps, AckStatus, Decoder, Message, Packet, FLAG_SAFE_ZERO,
+};
+use serialport::{SerialPort, TTYPort};
+use shm_schemas::{COIL_COUNT, NO_FRAME};
+
+/// The board's own per-channel limit (the Roboclaw channels), independent of coilbus.
+const HARDWARE_LIMIT_A: f64 = 30.0;
+const TELEMETRY_PERIOD: Duration = Duration::from_millis(50);
+
+/// What the emulated board currently drives, shared with the plant loop.
+#[derive(Debug, Clone)]
+pub struct TeensyOutputs {
+    pub currents_a: [f64; COIL_COUNT],
+    /// Frame of the newest controller command applied (`NO_FRAME` for none).
+    pub last_command_frame: u64,
+    pub watchdog_tripped: bool,
+    pub frames_received: u64,
+    pub rx_errors: u64,
+}
+
+struct Shared {
+    outputs: Mutex<TeensyOutputs>,
+    command_arrived: Condvar,
+    stop: AtomicBool,
+}
+
+pub struct EmulatedTeensy {
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<()>>,
+    pub link_path: PathBuf,
+}
+
+impl EmulatedTeensy {
+    /// Creates the pty pair, links its slave to `link_path`, and starts serving.
+    pub fn start(link_path: &Path, events_path: &Path, watchdog: Duration) -> anyhow::Result<Self> {
+        let (master, slave) = TTYPort::pair()?;
+        let slave_name = slave
+            .name()
+            .ok_or_else(|| anyhow::anyhow!("pty slave has no device path"))?;
+        // Keep our fds out of children and let coilbus reopen the slave after a restart.
+        let mut master = master.try_clone_native()?;
+        master.set_timeout(Duration::from_millis(5))?;
+        let mut slave = slave.try_clone_native()?;
+        slave.set_exclusive(false)?;
+        let _ = std::fs::remove_file(link_path);
+        std::os::unix::fs::symlink(&slave_name, link_path)?;
+        tracing::info!(pty = %slave_name, link = %link_path.display(), "emulated Teensy ready");
+        let mut events = std::fs::File::create(events_path)?;
+        writeln!(events, "monotonic_ns,frame_seq,flags,max_abs_current_a,event")?;
+
+        let shared = Arc::new(Shared {
+            outputs: Mutex::new(TeensyOutputs {
+                currents_a: [0.0; COIL_COUNT],
+                last_command_frame: NO_FRAME,
+                watchdog_tripped: true,
+                frames_received: 0,
+                rx_errors: 0,
+            }),
+            command_arrived: Condvar::new(),
+            stop: AtomicBool::new(false),
+        });
+        let thread_shared = shared.clone();
+        let thread = std::thread::Builder::new()
+            .name("teensy".into())
+            .spawn(move || {
+                // The slave handle stays open so the pty lives while coilbus restarts.
+                let _slave = slave;
+                serve(&mut master, &thread_shared, &mut events, watchdog);
+            })?;
+        Ok(Self {
+            shared,
+            thread: Some(thread),
+            link_path: link_path.to_owned(),
+        })
+    }
+
+    pub fn outputs(&self) -> TeensyOutputs {
+        lock(&self.shared).clone()
+    }
+
+    /// Blocks until a command for `frame_seq` (or newer) has been applied, or `timeout` passes.
+    /// Returns the outputs and whether the command arrived in time.
+    pub fn wait_for_frame(&self, frame_seq: u64, timeout: Duration) -> (TeensyOutputs, bool) {
+        let deadline = Instant::now() + timeout;
+        let mut guard = lock(&self.shared);
+        loop {
+            if guard.last_command_frame != NO_FRAME && guard.last_command_frame >= frame_seq {
+                return (guard.clone(), true);
+            }
+            let now = Instant::now();
+            if now >= deadline || self.shared.stop.load(Ordering::Relaxed) {
+                return (guard.clone(), false);
+            }
+            guard = match self.shared.command_arrived.wait_timeout(guard, deadline - now) {
+                Ok((g, _)) => g,
+                Err(poisoned) => poisoned.into_inner().0,
+            };
+        }
+    }
+
+    pub fn stop(&mut self) {
+        self.shared.stop.store(true, Ordering::Relaxed);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+        let _ = std::fs::remove_file(&self.link_path);
+    }
+}
+
+impl Drop for EmulatedTeensy {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+fn lock(shared: &Shared) -> std::sync::MutexGuard<'_, TeensyOutputs> {
+    shared.outputs.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+fn log_event(events: &mut std::fs::File, frame_seq: u64, flags: u8, currents: &[f64], event: &str) {
+    let max = currents.iter().fold(0.0f64, |m, c| m.max(c.abs()));
+    let seq = if frame_seq == NO_FRAME {
+        -1
+    } else {
+        frame_seq as i64
+    };
+    let _ = writeln!(
+        events,
+        "{},{seq},{flags},{max:.6},{event}",
+        millinav_kit::clock::monotonic_ns()
+    );
+}
+
+fn serve(
+    port: &mut TTYPort,
+    shared: &Shared,
+    events: &mut std::fs::File,
+    watchdog: Duration,
+) {
+    let mut decoder = Decoder::new();
+    let mut buf = [0u8; 1024];
+    let mut last_rx: Option<Instant> = None;
+    let mut last_telemetry = Instant::now();
+    let mut tx_seq = 0u32;
+    while !shared.stop.load(Ordering::Relaxed) {
+        let packets = match port.read(&mut buf) {
+            Ok(n) => decoder.push(&buf[..n]),
+            // TimedOut: nothing waiting. BrokenPipe: no peer has the slave open right now.
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Vec::new(),
+            Err(_) => {
+                std::thread::sleep(Duration::from_millis(5));
+                Vec::new()
+            }
+        };
+        let now = Instant::now();
+        for packet in packets {
+            let Message::SetCurrents {
+                frame_seq,
+                flags,
+                currents_ma,
+            } = packet.message
+            else {
+                continue;
+            };
+            last_rx = Some(now);
+            let mut clamped = false;
+            let currents = currents_ma.map(|ma| {
+                let a = ma_to_amps(ma);
+                clamped |= a.abs() > HARDWARE_LIMIT_A;
+                a.clamp(-HARDWARE_LIMIT_A, HARDWARE_LIMIT_A)
+            });
+            let event = if flags & FLAG_SAFE_ZERO != 0 {
+                "safe_zero"
+            } else {
+                "command"
+            };
+            log_event(events, frame_seq, flags, &currents, event);
+            {
+                let mut out = lock(shared);
+                out.currents_a = currents;
+                out.watchdog_tripped = false;
+                out.frames_received += 1;
+                if flags & FLAG_SAFE_ZERO == 0 {
+                    out.last_command_frame = frame_seq;
+                }
+            }
+            shared.command_arrived.notify_all();
+            tx_seq = tx_seq.wrapping_add(1);
+            let status = if clamped {
+                AckStatus::Clamped
+            } else {
+                AckStatus::Applied
+            };
+            let ack = encode(&Packet {
+                seq: tx_seq,
+                message: Message::Ack {
+                    acked_seq: packet.seq,
+                    status: status as u8,
+                },
+            });
+            let _ = port.write_all(&ack);
+        }
+        {
+            let mut out = lock(shared);
+            out.rx_errors = decoder.counters.errors();
+            let expired = last_rx.is_none_or(|t| now.duration_since(t) > watchdog);
+            if expired && !out.watchdog_tripped {
+                out.watchdog_tripped = true;
+                out.currents_a = [0.0; COIL_COUNT];
+                log_event(events, NO_FRAME, 0, &[0.0], "watchdog_zero");
+                tracing::warn!("emulated Teensy watchdog: no frame for {watchdog:?}, PWM zeroed");
+            }
+        }
+        if now.duration_since(last_telemetry) >= TELEMETRY_PERIOD {
+            last_telemetry = now;
+            let out = lock(shared).clone();
+            tx_seq = tx_seq.wrapping_add(1);
+            let telemetry = encode(&Packet {
+                seq: tx_seq,
+                message: Message::Telemetry {
+                    applied_ma: out.currents_a.map(millinav_coilbus::protocol::amps_to_ma),
+                    watchdog_tripped: out.watchdog_tripped,
+                    rx_errors: out.rx_errors.min(u32::MAX as u64) as u32,
+                    frames_received: (out.frames_received & u32::MAX as u64) as u32,
+                },
+            });
+            let _ = port.write_all(&telemetry);
+        }
+    }
+}

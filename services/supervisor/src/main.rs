@@ -1,0 +1,96 @@
+//! `millinav`: the supervisor's command line.
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use millinav_supervisor::launch::LaunchFile;
+use millinav_supervisor::{SupervisorOptions, ViewerMode};
+
+/// millinav: autonomous navigation of a magnetic millirobot through a heart phantom.
+/// `millinav run` launches the process set (plant/camera, vision, flow, control, coilbus) on
+/// the digital twin, supervises it and writes a Rerun recording of the run.
+#[derive(Parser)]
+#[command(name = "millinav", version)]
+struct Cli {
+    #[command(subcommand)]
+    command: Commands,
+}
+
+#[derive(Subcommand)]
+enum Commands {
+    /// Launch and supervise the process set for one scenario.
+    Run {
+        /// Scenario TOML (run mode, seed, fluid, flow, trajectory, per-service tables).
+        #[arg(default_value = "scenarios/default.toml")]
+        scenario: PathBuf,
+        /// Launch file listing the processes; default: the full set on the digital twin.
+        #[arg(long)]
+        launch: Option<PathBuf>,
+        /// Directory for this run's recordings, logs and event files (default runs/<time>).
+        #[arg(long)]
+        run_dir: Option<PathBuf>,
+        /// Rerun viewer: auto spawns one when installed and a display exists.
+        #[arg(long, value_enum, default_value = "auto")]
+        viewer: ViewerMode,
+        /// iceoryx2 file prefix of the set (give each concurrent run its own).
+        #[arg(long, default_value = "millinav_")]
+        iox_prefix: String,
+        /// iceoryx2 root directory of the set.
+        #[arg(long, default_value = "/tmp/millinav/iceoryx2")]
+        iox_root: PathBuf,
+        /// Stop after this many wall-clock seconds even if the run has not finished.
+        #[arg(long, default_value_t = 600.0)]
+        max_wall_s: f64,
+        /// Directory of the service executables (default: next to this executable).
+        #[arg(long)]
+        bin_dir: Option<PathBuf>,
+    },
+}
+
+fn main() -> anyhow::Result<()> {
+    match Cli::parse().command {
+        Commands::Run {
+            scenario,
+            launch,
+            run_dir,
+            viewer,
+            iox_prefix,
+            iox_root,
+            max_wall_s,
+            bin_dir,
+        } => {
+            let launch = match launch {
+                Some(path) => LaunchFile::load(&path)?,
+                None => LaunchFile::default(),
+            };
+            let bin_dir = match bin_dir {
+                Some(dir) => dir,
+                None => std::env::current_exe()?
+                    .parent()
+                    .context("executable has no directory")?
+                    .to_owned(),
+            };
+            let run_dir = run_dir.unwrap_or_else(|| {
+                let secs = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map(|d| d.as_secs())
+                    .unwrap_or(0);
+                PathBuf::from("runs").join(format!("run-{secs}"))
+            });
+            if !(max_wall_s.is_finite() && max_wall_s > 0.0) {
+                anyhow::bail!("--max-wall-s must be a positive number of seconds");
+            }
+            millinav_supervisor::run(SupervisorOptions {
+                scenario,
+                launch,
+                run_dir,
+                bin_dir,
+                viewer,
+                iox_prefix,
+                iox_root,
+                max_wall_time: Duration::from_secs_f64(max_wall_s),
+            })
+        }
+    }
+}

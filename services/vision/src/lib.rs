@@ -1,0 +1,286 @@
+//! vision: camera frames in, `Pose` out. A tracker searches a region of interest around the
+//! last detection and falls back to the whole frame when the robot is lost. A frame without a
+//! confident, unambiguous detection yields an invalid pose, never a guess.
+
+pub mod classical;
+
+use std::time::Duration;
+
+use anyhow::Context;
+use millinav_kit::iceoryx2::prelude::*;
+use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
+use millinav_kit::ports::{FrameInbox, Outbox};
+use millinav_kit::recording;
+use millinav_kit::rerun;
+use millinav_kit::scenario::Scenario;
+use millinav_kit::Runtime;
+use serde::{Deserialize, Serialize};
+use shm_schemas::{deadlines, services, FrameHeader, PixelFormat, Pose, PoseSource};
+
+use crate::classical::{CapsuleSize, ClassicalLocalizer, Detection, SearchRect};
+
+/// `[vision]` section of a scenario.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct VisionConfig {
+    /// Side of the square search region around the last detection (mm).
+    pub roi_mm: f64,
+    /// Log the camera image (half resolution) every this many frames; 0 never.
+    pub image_log_every: u64,
+}
+
+impl Default for VisionConfig {
+    fn default() -> Self {
+        Self {
+            roi_mm: 20.0,
+            image_log_every: 25,
+        }
+    }
+}
+
+/// Region-of-interest tracker: where to look in the next frame.
+#[derive(Debug, Default)]
+pub struct RoiTracker {
+    last_px: Option<(f64, f64)>,
+}
+
+impl RoiTracker {
+    pub fn search_rect(&self, width: i32, height: i32, roi_px: i32) -> SearchRect {
+        match self.last_px {
+            None => (0, 0, width, height),
+            Some((cx, cy)) => {
+                let side = roi_px.min(width).min(height).max(8);
+                let x = ((cx as i32) - side / 2).clamp(0, width - side);
+                let y = ((cy as i32) - side / 2).clamp(0, height - side);
+                (x, y, side, side)
+            }
+        }
+    }
+
+    pub fn update(&mut self, detection: Option<&Detection>) {
+        self.last_px = detection.map(|d| d.centroid_px);
+    }
+}
+
+/// Converts a detection (pixels) into a pose (metres) with the frame's geometry.
+pub fn pose_from_detection(header: &FrameHeader, d: &Detection) -> Pose {
+    let to_world = |(c, r): (f64, f64)| {
+        [
+            (header.origin_x_mm + c * header.mm_per_px) * 1e-3,
+            (header.origin_y_mm - r * header.mm_per_px) * 1e-3,
+        ]
+    };
+    let centroid = to_world(d.centroid_px);
+    let tip = to_world(d.tip_px);
+    let tail = to_world(d.tail_px);
+    Pose {
+        frame_seq: header.seq,
+        frame_incarnation: header.incarnation,
+        capture_time_ns: header.capture_time_ns,
+        position_m: centroid,
+        // Image y grows downwards: flip to the world's y-up convention.
+        heading_rad: -d.heading_image_rad,
+        tip_m: tip,
+        centroid_m: centroid,
+        tail_m: tail,
+        confidence: d.confidence,
+        valid: true,
+        source: PoseSource::Classical as u32,
+    }
+}
+
+pub fn invalid_pose(header: &FrameHeader) -> Pose {
+    Pose {
+        frame_seq: header.seq,
+        frame_incarnation: header.incarnation,
+        capture_time_ns: header.capture_time_ns,
+        valid: false,
+        source: PoseSource::Classical as u32,
+        ..Default::default()
+    }
+}
+
+/// Half-resolution copy of an RGB frame for the recording.
+fn half_resolution(rgb: &[u8], width: usize, height: usize) -> Vec<u8> {
+    let (w2, h2) = (width / 2, height / 2);
+    let mut out = Vec::with_capacity(w2 * h2 * 3);
+    for row in 0..h2 {
+        let src_row = &rgb[(2 * row) * width * 3..(2 * row + 1) * width * 3];
+        for col in 0..w2 {
+            out.extend_from_slice(&src_row[2 * col * 3..2 * col * 3 + 3]);
+        }
+    }
+    out
+}
+
+fn log_frame(
+    rec: &rerun::RecordingStream,
+    header: &FrameHeader,
+    rgb: &[u8],
+    detection: Option<&Detection>,
+    robot_mask: Option<(&opencv::core::Mat, SearchRect)>,
+    log_image: bool,
+) {
+    use opencv::prelude::*;
+    let (w, h) = (header.width as usize, header.height as usize);
+    if log_image {
+        let small = half_resolution(rgb, w, h);
+        let _ = rec.log(
+            "camera/image",
+            &rerun::Image::from_rgb24(small, [(w / 2) as u32, (h / 2) as u32]),
+        );
+        if let Some((mask, rect)) = robot_mask {
+            // The segmentation of the search region, placed in the half-resolution frame.
+            let mut full = vec![0u8; (w / 2) * (h / 2)];
+            for r in (0..rect.3).step_by(2) {
+                if let Ok(line) = mask.at_row::<u8>(r) {
+                    for c in (0..rect.2 as usize).step_by(2) {
+                        let (fr, fc) = ((rect.1 + r) as usize / 2, (rect.0 as usize + c) / 2);
+                        if fr < h / 2 && fc < w / 2 && line[c] > 0 {
+                            full[fr * (w / 2) + fc] = 1;
+                        }
+                    }
+                }
+            }
+            let _ = rec.log(
+                "camera/mask",
+                &rerun::SegmentationImage::new(
+                    full,
+                    rerun::datatypes::ImageFormat::segmentation(
+                        [(w / 2) as u32, (h / 2) as u32],
+                        rerun::datatypes::ChannelDatatype::U8,
+                    ),
+                ),
+            );
+        }
+    }
+    if let Some(d) = detection {
+        let half = |(c, r): (f64, f64)| [(c / 2.0) as f32, (r / 2.0) as f32];
+        let _ = rec.log(
+            "camera/keypoints",
+            &rerun::Points2D::new([half(d.tip_px), half(d.centroid_px), half(d.tail_px)])
+                .with_labels(["tip", "centroid", "tail"])
+                .with_radii([2.0]),
+        );
+    }
+}
+
+/// The vision process loop.
+pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
+    let config: VisionConfig = scenario.section("vision")?;
+    let frames = FrameInbox::new(&rt.node)?;
+    let poses = Outbox::<Pose>::new(&rt.node, services::POSE)?;
+    let localizer = ClassicalLocalizer::new(CapsuleSize::default());
+    let mut tracker = RoiTracker::default();
+    let mut lost_frames: u64 = 0;
+
+    let waitset = WaitSetBuilder::new()
+        .create::<ipc::Service>()
+        .map_err(millinav_kit::iox("waitset"))?;
+    let frame_guard = waitset
+        .attach_deadline(&frames.listener, deadlines::FRAME)
+        .map_err(millinav_kit::iox("attach frame deadline"))?;
+    let _tick = waitset
+        .attach_interval(deadlines::HEARTBEAT_PERIOD)
+        .map_err(millinav_kit::iox("attach tick"))?;
+
+    loop {
+        let mut missed = false;
+        let result = waitset
+            .wait_and_process_once_with_timeout(
+                |id| {
+                    if id.has_missed_deadline(&frame_guard) {
+                        missed = true;
+                    }
+                    CallbackProgression::Continue
+                },
+                Duration::from_millis(100),
+            )
+            .map_err(millinav_kit::iox("waitset"))?;
+        if matches!(
+            result,
+            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
+        ) {
+            break;
+        }
+        if missed {
+            rt.heartbeat.deadline_misses += 1;
+        }
+        rt.heartbeat.beat();
+        poses.update_connections();
+        rt.heartbeat.update_connections();
+        let Some(sample) = frames.latest()? else {
+            tracing::debug!("woke without a frame");
+            continue;
+        };
+        tracing::debug!(seq = sample.user_header().seq, "frame");
+        let header = *sample.user_header();
+        let rgb = sample.payload();
+        let pose = match header.validate(rgb.len()) {
+            Ok(PixelFormat::Rgb8) => {
+                let (w, h) = (header.width as i32, header.height as i32);
+                if header.stride != header.width * 3 {
+                    tracing::warn!("padded frames are not supported; frame {} dropped", header.seq);
+                    invalid_pose(&header)
+                } else {
+                    let roi_px = (config.roi_mm / header.mm_per_px).round() as i32;
+                    let rect = tracker.search_rect(w, h, roi_px);
+                    let result = localizer.localize(rgb, w, h, rect, header.mm_per_px);
+                    let log_image = config.image_log_every > 0
+                        && header.seq % config.image_log_every == 0;
+                    recording::set_time(&rt.rec, header.capture_time_ns, header.seq);
+                    match result {
+                        Ok((detection, mask)) => {
+                            tracker.update(Some(&detection));
+                            lost_frames = 0;
+                            log_frame(&rt.rec, &header, rgb, Some(&detection), Some((&mask, rect)), log_image);
+                            pose_from_detection(&header, &detection)
+                        }
+                        Err(why) => {
+                            tracker.update(None);
+                            lost_frames += 1;
+                            if lost_frames == 1 || lost_frames % 100 == 0 {
+                                tracing::warn!(seq = header.seq, "no pose: {why}");
+                            }
+                            log_frame(&rt.rec, &header, rgb, None, None, log_image);
+                            invalid_pose(&header)
+                        }
+                    }
+                }
+            }
+            Ok(other) => {
+                tracing::warn!("unsupported pixel format {other:?}; frame {} dropped", header.seq);
+                invalid_pose(&header)
+            }
+            Err(why) => {
+                tracing::warn!("malformed frame {}: {why}", header.seq);
+                invalid_pose(&header)
+            }
+        };
+        drop(sample);
+        if pose.valid {
+            let _ = rt.rec.log(
+                "world/robot/estimated",
+                &rerun::Points2D::new([[
+                    (pose.position_m[0] * 1e3) as f32,
+                    (pose.position_m[1] * 1e3) as f32,
+                ]])
+                .with_radii([1.0]),
+            );
+            recording::scalar(&rt.rec, "vision/x_mm", pose.position_m[0] * 1e3);
+            recording::scalar(&rt.rec, "vision/y_mm", pose.position_m[1] * 1e3);
+            recording::scalar(&rt.rec, "vision/heading_deg", pose.heading_rad.to_degrees());
+        }
+        recording::scalar(&rt.rec, "vision/valid", f64::from(u8::from(pose.valid)));
+        poses.send(pose)?;
+    }
+    let _ = rt.rec.flush_blocking();
+    Ok(())
+}
+
+pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()> {
+    let mut rt = Runtime::start(shm_schemas::ServiceId::Vision)?;
+    let scenario = Scenario::load(scenario_path)
+        .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
+    run(&mut rt, &scenario)
+}
