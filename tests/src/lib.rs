@@ -1,1 +1,315 @@
+//! Harness for cross-process tests: starts the real supervisor and process set in an isolated
+//! iceoryx2 namespace (own prefix and root) and run directory, and reads back what the run left
+//! behind (ground truth, emulated-Teensy events, supervisor events, recordings).
 
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use millinav_control::reference::Reference;
+use millinav_kit::scenario::Scenario;
+use nalgebra::Vector2;
+
+/// Directory holding the built executables (the test binary lives in `<target>/release/deps`).
+pub fn bin_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    let deps = exe.parent().expect("deps dir");
+    deps.parent().expect("profile dir").to_owned()
+}
+
+/// A run of the whole set under the supervisor.
+pub struct RunSet {
+    pub name: String,
+    pub run_dir: PathBuf,
+    pub scenario_path: PathBuf,
+    pub iox_prefix: String,
+    pub iox_root: PathBuf,
+    supervisor: Option<Child>,
+}
+
+impl RunSet {
+    /// Writes `scenario_toml` into a fresh run directory and starts the supervisor on it.
+    pub fn start(name: &str, scenario_toml: &str) -> anyhow::Result<Self> {
+        let base = std::env::temp_dir().join(format!("millinav-test-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&base);
+        let run_dir = base.join("run");
+        std::fs::create_dir_all(&run_dir)?;
+        let scenario_path = base.join("scenario.toml");
+        std::fs::write(&scenario_path, scenario_toml)?;
+        let iox_prefix = format!("mt{}{}_", std::process::id(), name.replace(['-', ' '], ""));
+        let iox_root = base.join("iceoryx2");
+        let mut command = Command::new(bin_dir().join("millinav"));
+        command
+            .arg("run")
+            .arg(&scenario_path)
+            .arg("--run-dir")
+            .arg(&run_dir)
+            .args(["--viewer", "none", "--max-wall-s", "300"])
+            .arg("--iox-prefix")
+            .arg(&iox_prefix)
+            .arg("--iox-root")
+            .arg(&iox_root)
+            .env("PATH", path_with_rerun())
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(base.join("supervisor.log"))?);
+        let supervisor = command.spawn().context("starting millinav run")?;
+        Ok(Self {
+            name: name.to_owned(),
+            run_dir,
+            scenario_path,
+            iox_prefix,
+            iox_root,
+            supervisor: Some(supervisor),
+        })
+    }
+
+    /// Waits for the supervisor to exit.
+    pub fn wait(&mut self, timeout: Duration) -> anyhow::Result<ExitStatus> {
+        let deadline = Instant::now() + timeout;
+        let child = self.supervisor.as_mut().context("supervisor already reaped")?;
+        loop {
+            if let Some(status) = child.try_wait()? {
+                self.supervisor = None;
+                return Ok(status);
+            }
+            if Instant::now() > deadline {
+                let _ = child.kill();
+                bail!(
+                    "run {} did not finish within {timeout:?}; see {}",
+                    self.name,
+                    self.run_dir.display()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    pub fn scenario(&self) -> anyhow::Result<Scenario> {
+        Ok(Scenario::load(&self.scenario_path)?)
+    }
+
+    /// PID of a service's current incarnation, from the supervisor's pid files.
+    pub fn pid_of(&self, service: &str) -> anyhow::Result<i32> {
+        let text = std::fs::read_to_string(self.run_dir.join("pids").join(format!("{service}.pid")))?;
+        Ok(text.trim().parse()?)
+    }
+
+    /// Waits until the plant has published at least `frames` frames.
+    pub fn wait_for_frames(&self, frames: u64, timeout: Duration) -> anyhow::Result<()> {
+        let deadline = Instant::now() + timeout;
+        while Instant::now() < deadline {
+            let commanded = self
+                .teensy_events()
+                .unwrap_or_default()
+                .iter()
+                .filter_map(|e| e.frame_seq)
+                .max()
+                .unwrap_or(0);
+            if commanded >= frames {
+                return Ok(());
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        bail!("the loop did not reach frame {frames} within {timeout:?}")
+    }
+
+    pub fn truth(&self) -> anyhow::Result<Vec<TruthRow>> {
+        read_truth(&self.run_dir.join("truth.csv"))
+    }
+
+    pub fn teensy_events(&self) -> anyhow::Result<Vec<TeensyEvent>> {
+        let text = std::fs::read_to_string(self.run_dir.join("teensy_events.csv"))?;
+        Ok(text
+            .lines()
+            .skip(1)
+            .filter_map(|line| {
+                let f: Vec<&str> = line.split(',').collect();
+                if f.len() != 5 {
+                    return None; // a line being written right now
+                }
+                let seq: i64 = f[1].parse().ok()?;
+                Some(TeensyEvent {
+                    monotonic_ns: f[0].parse().ok()?,
+                    frame_seq: (seq >= 0).then_some(seq as u64),
+                    max_abs_current_a: f[3].parse().ok()?,
+                    kind: f[4].to_owned(),
+                })
+            })
+            .collect())
+    }
+
+    pub fn supervisor_events(&self) -> anyhow::Result<Vec<SupervisorEvent>> {
+        let text = std::fs::read_to_string(self.run_dir.join("supervisor_events.csv"))?;
+        Ok(text
+            .lines()
+            .skip(1)
+            .filter_map(|line| {
+                let mut f = line.splitn(4, ',');
+                Some(SupervisorEvent {
+                    monotonic_ns: f.next()?.parse().ok()?,
+                    service: f.next()?.to_owned(),
+                    event: f.next()?.to_owned(),
+                    detail: f.next().unwrap_or("").to_owned(),
+                })
+            })
+            .collect())
+    }
+
+    /// Shared-memory segments of this run still present in /dev/shm (excluding iceoryx2's
+    /// global node counter, which it never removes by design).
+    pub fn shm_segments(&self) -> Vec<String> {
+        shm_segments_with_prefix(&self.iox_prefix)
+    }
+}
+
+impl Drop for RunSet {
+    fn drop(&mut self) {
+        if let Some(child) = self.supervisor.as_mut() {
+            let _ = nix::sys::signal::kill(
+                nix::unistd::Pid::from_raw(child.id() as i32),
+                nix::sys::signal::Signal::SIGTERM,
+            );
+            let _ = child.wait();
+        }
+        for name in shm_segments_with_prefix(&self.iox_prefix) {
+            let _ = std::fs::remove_file(Path::new("/dev/shm").join(name));
+        }
+        if let Ok(entries) = std::fs::read_dir("/dev/shm") {
+            for e in entries.flatten() {
+                if e.file_name().to_string_lossy().starts_with(&self.iox_prefix) {
+                    let _ = std::fs::remove_file(e.path());
+                }
+            }
+        }
+    }
+}
+
+pub fn shm_segments_with_prefix(prefix: &str) -> Vec<String> {
+    std::fs::read_dir("/dev/shm")
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(prefix) && !n.ends_with(".global_mgmt"))
+        .collect()
+}
+
+#[derive(Debug, Clone)]
+pub struct TruthRow {
+    pub frame_seq: u64,
+    pub sim_time_s: f64,
+    pub position_m: Vector2<f64>,
+    pub wall_contact: bool,
+    pub max_abs_current_a: f64,
+    pub lockstep_misses: u64,
+}
+
+pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TruthRow>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut rows = Vec::new();
+    for line in text.lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 12 {
+            continue;
+        }
+        rows.push(TruthRow {
+            frame_seq: f[0].parse()?,
+            sim_time_s: f[1].parse()?,
+            position_m: Vector2::new(f[2].parse()?, f[3].parse()?),
+            wall_contact: f[9] == "1",
+            max_abs_current_a: f[10].parse()?,
+            lockstep_misses: f[11].parse()?,
+        });
+    }
+    Ok(rows)
+}
+
+#[derive(Debug, Clone)]
+pub struct TeensyEvent {
+    pub monotonic_ns: u64,
+    pub frame_seq: Option<u64>,
+    pub max_abs_current_a: f64,
+    pub kind: String,
+}
+
+#[derive(Debug, Clone)]
+pub struct SupervisorEvent {
+    pub monotonic_ns: u64,
+    pub service: String,
+    pub event: String,
+    pub detail: String,
+}
+
+/// Tracking metrics from ground truth against the scenario's reference.
+#[derive(Debug, Clone, Copy)]
+pub struct Tracking {
+    pub rmse_m: f64,
+    pub max_m: f64,
+    pub final_error_m: f64,
+    pub wall_contacts: usize,
+}
+
+/// Errors of the truth trace against the reference, for frames at or after `from_time_s`.
+pub fn tracking(scenario: &Scenario, truth: &[TruthRow], from_time_s: f64) -> anyhow::Result<Tracking> {
+    let reference = Reference::new(
+        &scenario.waypoints_m(),
+        scenario.trajectory.speed_mm_s * 1e-3,
+        scenario.trajectory.start_time_s,
+    )?;
+    // A plant restarted or frames republished at start give repeated rows: keep one per frame.
+    let mut errors = Vec::new();
+    let mut last_seq = None;
+    for row in truth.iter().filter(|r| r.sim_time_s >= from_time_s) {
+        if last_seq == Some(row.frame_seq) {
+            continue;
+        }
+        last_seq = Some(row.frame_seq);
+        let r = reference.sample(row.sim_time_s);
+        errors.push((row.position_m - r.position_m).norm());
+    }
+    if errors.is_empty() {
+        bail!("no ground truth after t = {from_time_s} s");
+    }
+    let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len() as f64).sqrt();
+    Ok(Tracking {
+        rmse_m: rmse,
+        max_m: errors.iter().cloned().fold(0.0, f64::max),
+        final_error_m: *errors.last().unwrap_or(&f64::NAN),
+        wall_contacts: truth.iter().filter(|r| r.wall_contact).count(),
+    })
+}
+
+/// The project's Python environment (made by scripts/setup.sh).
+pub fn venv_dir() -> PathBuf {
+    std::env::var_os("MILLINAV_VENV")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            PathBuf::from(std::env::var_os("HOME").unwrap_or_default())
+                .join(".cache/millinav/venv")
+        })
+}
+
+/// PATH with the venv's bin directory first, so the supervisor finds the `rerun` CLI.
+pub fn path_with_rerun() -> std::ffi::OsString {
+    let mut paths = vec![venv_dir().join("bin")];
+    if let Some(existing) = std::env::var_os("PATH") {
+        paths.extend(std::env::split_paths(&existing));
+    }
+    std::env::join_paths(paths).unwrap_or_default()
+}
+
+/// A scenario file's text for tests.
+pub fn scenario_text(duration_s: f64, waypoints_mm: &[[f64; 2]], speed_mm_s: f64, extra: &str) -> String {
+    let points: Vec<String> = waypoints_mm
+        .iter()
+        .map(|p| format!("[{:.3}, {:.3}]", p[0], p[1]))
+        .collect();
+    format!(
+        "[run]\nmode = \"lockstep\"\nseed = 3\nduration_s = {duration_s}\nframe_period_ms = 10.0\n\n\
+         [fluid]\nviscosity_cp = 20.0\n\n\
+         [trajectory]\nwaypoints_mm = [{}]\nspeed_mm_s = {speed_mm_s}\nstart_time_s = 0.5\n\n{extra}\n",
+        points.join(", ")
+    )
+}

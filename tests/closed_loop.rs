@@ -1,0 +1,125 @@
+//! The whole process set runs closed-loop in lockstep on the digital twin, and the run's
+//! recording parses back with the entities a lab engineer looks at.
+
+use std::process::Command;
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use millinav_tests::{scenario_text, tracking, venv_dir, RunSet, Tracking};
+
+/// RMSE bound for PID on this short static-fluid path (the paper's PID: 0.82 mm at 20 cP).
+const RMSE_BOUND_M: f64 = 0.5e-3;
+
+struct Outcome {
+    run: RunSet,
+    tracking: Tracking,
+    complete: bool,
+}
+
+/// One run shared by the tests of this file (a closed-loop run costs a few seconds).
+fn outcome() -> &'static Outcome {
+    static OUTCOME: OnceLock<Outcome> = OnceLock::new();
+    OUTCOME.get_or_init(|| {
+        let text = scenario_text(
+            7.0,
+            &[[-18.0, 12.0], [-12.0, 8.0], [-10.0, 4.0]],
+            2.0,
+            "[control]\ncontroller = \"pid\"\n",
+        );
+        let mut run = RunSet::start("closedloop", &text).expect("start run");
+        let status = run.wait(Duration::from_secs(120)).expect("run finishes");
+        assert!(status.success(), "supervisor exit status {status}");
+        let scenario = run.scenario().expect("scenario");
+        let truth = run.truth().expect("truth");
+        let tracking = tracking(&scenario, &truth, 0.0).expect("tracking");
+        let complete = run
+            .supervisor_events()
+            .expect("events")
+            .iter()
+            .any(|e| e.service == "plant" && e.event == "run_complete");
+        Outcome {
+            run,
+            tracking,
+            complete,
+        }
+    })
+}
+
+#[test]
+fn follows_a_short_path_to_its_end_in_lockstep() {
+    let o = outcome();
+    println!(
+        "closed loop (PID, 20 cP, static): RMSE {:.3} mm, max {:.3} mm, final {:.3} mm, wall contacts {}",
+        o.tracking.rmse_m * 1e3,
+        o.tracking.max_m * 1e3,
+        o.tracking.final_error_m * 1e3,
+        o.tracking.wall_contacts
+    );
+    assert!(o.complete, "the plant did not report run_complete");
+    assert!(
+        o.tracking.rmse_m < RMSE_BOUND_M,
+        "RMSE {:.3} mm exceeds {:.3} mm",
+        o.tracking.rmse_m * 1e3,
+        RMSE_BOUND_M * 1e3
+    );
+    assert!(o.tracking.final_error_m < 0.5e-3, "did not reach the end");
+    assert_eq!(o.tracking.wall_contacts, 0);
+    // A clean shutdown leaves no shared memory behind.
+    assert!(
+        o.run.shm_segments().is_empty(),
+        "leaked segments: {:?}",
+        o.run.shm_segments()
+    );
+}
+
+#[test]
+fn recording_parses_back_with_image_pose_error_and_current_entities() {
+    let o = outcome();
+    let rrd = o.run.run_dir.join("run.rrd");
+    assert!(
+        rrd.is_file(),
+        "no merged recording at {} (the `rerun` CLI comes with scripts/setup.sh)",
+        rrd.display()
+    );
+    let rerun = venv_dir().join("bin/rerun");
+    let verify = Command::new(&rerun)
+        .args(["rrd", "verify"])
+        .arg(&rrd)
+        .output()
+        .expect("run rerun rrd verify");
+    assert!(
+        verify.status.success(),
+        "rerun rrd verify failed: {}",
+        String::from_utf8_lossy(&verify.stderr)
+    );
+    let python = venv_dir().join("bin/python");
+    let listing = Command::new(python)
+        .arg("-c")
+        .arg(
+            "import sys\nfrom rerun.experimental import RrdReader\n\
+             print('\\n'.join(sorted({c.entity_path for c in RrdReader(sys.argv[1]).stream()})))",
+        )
+        .arg(&rrd)
+        .output()
+        .expect("run the Python reader");
+    assert!(
+        listing.status.success(),
+        "Python reader failed: {}",
+        String::from_utf8_lossy(&listing.stderr)
+    );
+    let paths = String::from_utf8_lossy(&listing.stdout);
+    println!("entities in run.rrd:\n{paths}");
+    for wanted in [
+        "/camera/image",
+        "/camera/keypoints",
+        "/world/robot/estimated",
+        "/control/error_mm/norm",
+        "/coilbus/current_a/0",
+        "/world/planned_path",
+    ] {
+        assert!(
+            paths.lines().any(|p| p.trim() == wanted),
+            "entity {wanted} missing from the recording"
+        );
+    }
+}

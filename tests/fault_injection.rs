@@ -1,0 +1,99 @@
+//! Fault injection: SIGKILL control in the middle of a lockstep tracking run. The coils must
+//! reach zero within one command deadline (seen at the emulated Teensy), the supervisor must
+//! restart control, and tracking must resume and complete.
+
+use std::time::Duration;
+
+use millinav_kit::clock::monotonic_ns;
+use millinav_tests::{scenario_text, tracking, RunSet};
+use nix::sys::signal::{kill, Signal};
+use nix::unistd::Pid;
+use shm_schemas::deadlines;
+
+/// Scheduling slack allowed on top of the deadline on a loaded 2-core machine.
+const JITTER_MS: f64 = 30.0;
+
+#[test]
+fn killing_control_zeroes_coils_then_restart_resumes_tracking() {
+    let text = scenario_text(
+        9.0,
+        &[[-18.0, 12.0], [-12.0, 8.0], [-10.0, 2.0]],
+        1.5,
+        "[control]\ncontroller = \"pid\"\n",
+    );
+    let mut run = RunSet::start("faultcontrol", &text).expect("start run");
+    run.wait_for_frames(300, Duration::from_secs(60))
+        .expect("loop running");
+    let pid = run.pid_of("control").expect("control pid");
+    let killed_at = monotonic_ns();
+    kill(Pid::from_raw(pid), Signal::SIGKILL).expect("SIGKILL control");
+    let status = run.wait(Duration::from_secs(180)).expect("run finishes");
+    assert!(status.success(), "supervisor exit status {status}");
+
+    let events = run.teensy_events().expect("teensy events");
+    let last_command_before = events
+        .iter()
+        .filter(|e| e.kind == "command" && e.monotonic_ns <= killed_at)
+        .last()
+        .expect("commands before the kill")
+        .clone();
+    let zero = events
+        .iter()
+        .find(|e| {
+            e.monotonic_ns > last_command_before.monotonic_ns && e.max_abs_current_a == 0.0
+        })
+        .expect("currents reached zero after the kill")
+        .clone();
+    let resumed = events
+        .iter()
+        .find(|e| {
+            e.kind == "command"
+                && e.monotonic_ns > zero.monotonic_ns
+                && e.frame_seq > last_command_before.frame_seq
+        })
+        .expect("commands resumed after the restart")
+        .clone();
+    let supervisor = run.supervisor_events().expect("supervisor events");
+    let detected = supervisor
+        .iter()
+        .find(|e| e.service == "control" && e.event == "exit" && e.monotonic_ns >= killed_at)
+        .expect("supervisor saw control exit");
+    let restarted = supervisor
+        .iter()
+        .find(|e| e.service == "control" && e.event == "restart" && e.monotonic_ns >= killed_at)
+        .expect("supervisor restarted control");
+    assert!(
+        supervisor
+            .iter()
+            .any(|e| e.service == "plant" && e.event == "run_complete"),
+        "run did not complete"
+    );
+
+    let ms = |a: u64, b: u64| (b as f64 - a as f64) * 1e-6;
+    let deadline_ms = deadlines::COMMAND.as_secs_f64() * 1e3;
+    let zero_after_last_command = ms(last_command_before.monotonic_ns, zero.monotonic_ns);
+    let zero_after_kill = ms(killed_at, zero.monotonic_ns);
+    let detection = ms(killed_at, detected.monotonic_ns);
+    let restart = ms(killed_at, restarted.monotonic_ns);
+    let resume = ms(killed_at, resumed.monotonic_ns);
+    println!("fault injection: SIGKILL control at frame ~{:?}", last_command_before.frame_seq);
+    println!("  time to zero current: {zero_after_kill:.1} ms after the kill, {zero_after_last_command:.1} ms after the last command (deadline {deadline_ms:.0} ms, by {})", zero.kind);
+    println!("  supervisor detection: {detection:.1} ms; restart issued: {restart:.1} ms");
+    println!("  time to resume tracking (first new command at the Teensy): {resume:.1} ms");
+
+    assert!(
+        zero_after_last_command <= deadline_ms + JITTER_MS,
+        "coils reached zero {zero_after_last_command:.1} ms after the last command; deadline {deadline_ms} ms"
+    );
+    let scenario = run.scenario().expect("scenario");
+    let truth = run.truth().expect("truth");
+    let t = tracking(&scenario, &truth, 0.0).expect("tracking");
+    println!(
+        "  tracking over the whole run: RMSE {:.3} mm, max {:.3} mm, final {:.3} mm",
+        t.rmse_m * 1e3,
+        t.max_m * 1e3,
+        t.final_error_m * 1e3
+    );
+    assert!(t.final_error_m < 0.5e-3, "did not reach the end after the restart");
+    assert!(t.max_m < 3e-3, "error grew to {:.2} mm during the outage", t.max_m * 1e3);
+}
