@@ -1,0 +1,4 @@
+//! Library behind `fieldgen`: each subcommand's logic lives in its own module.
+pub mod cfd;
+pub mod coils;
+pub mod import;

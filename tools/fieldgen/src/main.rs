@@ -1,0 +1,30 @@
+//! `fieldgen`: regenerates the rig data committed under fieldmaps/.
+use clap::{Parser, Subcommand};
+
+/// Generates millinav's rig data: calibrated coil field maps and CFD flow maps of the phantom,
+/// and converts CFD exports from other tools into millinav's flow-map format.
+#[derive(Parser)]
+#[command(name = "fieldgen", version)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Coil field maps (Biot–Savart), calibrated to the paper's FEA numbers.
+    Coils(fieldgen::coils::CoilsArgs),
+    /// Steady laminar CFD of the phantom → flow maps at the control plane.
+    Cfd(fieldgen::cfd::CfdArgs),
+    /// Convert an ANSYS Fluent or OpenFOAM export into a millinav flow map.
+    Import(fieldgen::import::ImportArgs),
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt().with_writer(std::io::stderr).with_target(false).init();
+    match Cli::parse().command {
+        Command::Coils(args) => fieldgen::coils::run(&args),
+        Command::Cfd(args) => fieldgen::cfd::run(&args),
+        Command::Import(args) => fieldgen::import::run(&args),
+    }
+}

@@ -1,0 +1,4 @@
+//! `planner` (being written).
+fn main() -> anyhow::Result<()> {
+    anyhow::bail!("planner is not built yet")
+}
