@@ -22,7 +22,7 @@ impl Default for CapsuleSize {
     }
 }
 
-/// A detection in pixel coordinates of the full frame (pixel centres at integer + 0.5).
+/// A detection in pixel coordinates of the full frame (continuous, pixel centres at integers).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Detection {
     pub centroid_px: (f64, f64),
@@ -134,8 +134,8 @@ impl ClassicalLocalizer {
                 expected_px,
             });
         }
-        let cx = bbox.x as f64 + m.m10 / m.m00 + 0.5;
-        let cy = bbox.y as f64 + m.m01 / m.m00 + 0.5;
+        let cx = bbox.x as f64 + m.m10 / m.m00;
+        let cy = bbox.y as f64 + m.m01 / m.m00;
         let axis_angle = 0.5 * (2.0 * m.mu11).atan2(m.mu20 - m.mu02);
         let (ax, ay) = (axis_angle.cos(), axis_angle.sin());
 
@@ -146,8 +146,8 @@ impl ClassicalLocalizer {
         if mm.m00 < min_magnet_px {
             return Err(LocalizeError::Ambiguous);
         }
-        let mx = bbox.x as f64 + mm.m10 / mm.m00 + 0.5;
-        let my = bbox.y as f64 + mm.m01 / mm.m00 + 0.5;
+        let mx = bbox.x as f64 + mm.m10 / mm.m00;
+        let my = bbox.y as f64 + mm.m01 / mm.m00;
         let side = (mx - cx) * ax + (my - cy) * ay;
         let offset_px = side.abs();
         if offset_px < 0.15 * self.size.length_m * px_per_m {
@@ -158,7 +158,7 @@ impl ClassicalLocalizer {
         // Ends: extreme projections of the outline on the axis.
         let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
         for p in contour.iter() {
-            let s = (p.x as f64 + 0.5 - cx) * hx + (p.y as f64 + 0.5 - cy) * hy;
+            let s = (p.x as f64 - cx) * hx + (p.y as f64 - cy) * hy;
             lo = lo.min(s);
             hi = hi.max(s);
         }

@@ -3,6 +3,8 @@
 //! confident, unambiguous detection yields an invalid pose, never a guess.
 
 pub mod classical;
+pub mod eval;
+pub mod unet;
 
 use std::time::Duration;
 
@@ -17,13 +19,32 @@ use millinav_kit::Runtime;
 use serde::{Deserialize, Serialize};
 use shm_schemas::{deadlines, services, FrameHeader, PixelFormat, Pose, PoseSource};
 
-use crate::classical::{CapsuleSize, ClassicalLocalizer, Detection, SearchRect};
+use std::path::{Path, PathBuf};
+
+use crate::classical::{CapsuleSize, ClassicalLocalizer, Detection, LocalizeError, SearchRect};
+use crate::unet::{find_onnxruntime, UnetError, UnetLocalizer};
+
+/// Which localizer produces poses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum LocalizerKind {
+    /// UNet on a region of interest; the classical localizer re-acquires a lost robot.
+    #[default]
+    Unet,
+    /// OpenCV colour segmentation and moments only (baseline and fallback).
+    Classical,
+}
 
 /// `[vision]` section of a scenario.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct VisionConfig {
-    /// Side of the square search region around the last detection (mm).
+    pub localizer: LocalizerKind,
+    /// UNet model (ONNX); relative paths are taken from the workspace root, then the scenario.
+    pub model: PathBuf,
+    /// libonnxruntime.so; default: ORT_DYLIB_PATH, then the project venv's onnxruntime wheel.
+    pub onnxruntime: Option<PathBuf>,
+    /// Side of the square search region around the last detection (mm), classical path.
     pub roi_mm: f64,
     /// Log the camera image (half resolution) every this many frames; 0 never.
     pub image_log_every: u64,
@@ -32,16 +53,107 @@ pub struct VisionConfig {
 impl Default for VisionConfig {
     fn default() -> Self {
         Self {
+            localizer: LocalizerKind::default(),
+            model: PathBuf::from(DEFAULT_MODEL),
+            onnxruntime: None,
             roi_mm: 20.0,
             image_log_every: 25,
         }
     }
 }
 
+/// The committed model, relative to the workspace root.
+pub const DEFAULT_MODEL: &str = "tools/unet/model/unet_roi96.onnx";
+
+/// Resolves the model path: absolute, else relative to the workspace root (where the
+/// executables' build tree lives), else relative to the scenario file.
+pub fn resolve_model(config: &VisionConfig, scenario: &Scenario) -> PathBuf {
+    if config.model.is_absolute() {
+        return config.model.clone();
+    }
+    let from_root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(&config.model);
+    if from_root.exists() {
+        return from_root;
+    }
+    scenario.resolve(&config.model)
+}
+
+/// The localization pipeline of the service: ROI tracking, the chosen localizer, re-acquisition.
+pub struct Pipeline {
+    pub tracker: RoiTracker,
+    classical: ClassicalLocalizer,
+    unet: Option<UnetLocalizer>,
+    roi_mm: f64,
+}
+
+/// What one frame gave.
+pub struct FrameResult {
+    pub detection: Result<Detection, LocalizeError>,
+    pub source: PoseSource,
+    /// Segmentation of the classical path, with its search rectangle (for the recording).
+    pub classical_mask: Option<(opencv::core::Mat, SearchRect)>,
+}
+
+impl Pipeline {
+    pub fn new(config: &VisionConfig, scenario: &Scenario) -> Result<Self, UnetError> {
+        let size = CapsuleSize::default();
+        let unet = match config.localizer {
+            LocalizerKind::Classical => None,
+            LocalizerKind::Unet => {
+                let runtime = find_onnxruntime(config.onnxruntime.as_deref())?;
+                let model = resolve_model(config, scenario);
+                let mm_per_px = shm_schemas::FRAME_FIELD_OF_VIEW_MM / shm_schemas::FRAME_WIDTH as f64;
+                Some(UnetLocalizer::load(&model, &runtime, size.length_m * 1e3, mm_per_px)?)
+            }
+        };
+        Ok(Self {
+            tracker: RoiTracker::default(),
+            classical: ClassicalLocalizer::new(size),
+            unet,
+            roi_mm: config.roi_mm,
+        })
+    }
+
+    /// Localizes the capsule in one RGB frame.
+    pub fn process(&mut self, rgb: &[u8], width: usize, height: usize, mm_per_px: f64) -> FrameResult {
+        let (w, h) = (width as i32, height as i32);
+        let roi_px = (self.roi_mm / mm_per_px).round() as i32;
+        let mut result = FrameResult {
+            detection: Err(LocalizeError::NotFound),
+            source: PoseSource::Classical,
+            classical_mask: None,
+        };
+        // Classical: the whole answer, or (UNet) only re-acquisition when the robot is lost.
+        let predicted = match (&self.unet, self.tracker.last_px) {
+            (Some(_), Some(last)) => Some(last),
+            _ => {
+                let rect = self.tracker.search_rect(w, h, roi_px);
+                match self.classical.localize(rgb, w, h, rect, mm_per_px) {
+                    Ok((d, mask)) => {
+                        result.classical_mask = Some((mask, rect));
+                        result.detection = Ok(d);
+                        Some(d.centroid_px)
+                    }
+                    Err(e) => {
+                        result.detection = Err(e);
+                        None
+                    }
+                }
+            }
+        };
+        if let (Some(unet), Some(centre)) = (self.unet.as_mut(), predicted) {
+            result.source = PoseSource::Unet;
+            result.detection = unet.localize(rgb, width, height, centre);
+        }
+        self.tracker.update(result.detection.as_ref().ok());
+        result
+    }
+}
+
 /// Region-of-interest tracker: where to look in the next frame.
 #[derive(Debug, Default)]
 pub struct RoiTracker {
-    last_px: Option<(f64, f64)>,
+    pub last_px: Option<(f64, f64)>,
 }
 
 impl RoiTracker {
@@ -63,11 +175,11 @@ impl RoiTracker {
 }
 
 /// Converts a detection (pixels) into a pose (metres) with the frame's geometry.
-pub fn pose_from_detection(header: &FrameHeader, d: &Detection) -> Pose {
+pub fn pose_from_detection(header: &FrameHeader, d: &Detection, source: PoseSource) -> Pose {
     let to_world = |(c, r): (f64, f64)| {
         [
-            (header.origin_x_mm + c * header.mm_per_px) * 1e-3,
-            (header.origin_y_mm - r * header.mm_per_px) * 1e-3,
+            (header.origin_x_mm + (c + 0.5) * header.mm_per_px) * 1e-3,
+            (header.origin_y_mm - (r + 0.5) * header.mm_per_px) * 1e-3,
         ]
     };
     let centroid = to_world(d.centroid_px);
@@ -85,7 +197,7 @@ pub fn pose_from_detection(header: &FrameHeader, d: &Detection) -> Pose {
         tail_m: tail,
         confidence: d.confidence,
         valid: true,
-        source: PoseSource::Classical as u32,
+        source: source as u32,
     }
 }
 
@@ -170,8 +282,8 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     let config: VisionConfig = scenario.section("vision")?;
     let frames = FrameInbox::new(&rt.node)?;
     let poses = Outbox::<Pose>::new(&rt.node, services::POSE)?;
-    let localizer = ClassicalLocalizer::new(CapsuleSize::default());
-    let mut tracker = RoiTracker::default();
+    let mut pipeline = Pipeline::new(&config, scenario)?;
+    tracing::info!(localizer = ?config.localizer, "vision ready");
     let mut lost_frames: u64 = 0;
 
     let waitset = WaitSetBuilder::new()
@@ -223,21 +335,18 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                     tracing::warn!("padded frames are not supported; frame {} dropped", header.seq);
                     invalid_pose(&header)
                 } else {
-                    let roi_px = (config.roi_mm / header.mm_per_px).round() as i32;
-                    let rect = tracker.search_rect(w, h, roi_px);
-                    let result = localizer.localize(rgb, w, h, rect, header.mm_per_px);
+                    let result = pipeline.process(rgb, w as usize, h as usize, header.mm_per_px);
                     let log_image = config.image_log_every > 0
                         && header.seq % config.image_log_every == 0;
                     recording::set_time(&rt.rec, header.capture_time_ns, header.seq);
-                    match result {
-                        Ok((detection, mask)) => {
-                            tracker.update(Some(&detection));
+                    let mask = result.classical_mask.as_ref().map(|(m, r)| (m, *r));
+                    match &result.detection {
+                        Ok(detection) => {
                             lost_frames = 0;
-                            log_frame(&rt.rec, &header, rgb, Some(&detection), Some((&mask, rect)), log_image);
-                            pose_from_detection(&header, &detection)
+                            log_frame(&rt.rec, &header, rgb, Some(detection), mask, log_image);
+                            pose_from_detection(&header, detection, result.source)
                         }
                         Err(why) => {
-                            tracker.update(None);
                             lost_frames += 1;
                             if lost_frames == 1 || lost_frames % 100 == 0 {
                                 tracing::warn!(seq = header.seq, "no pose: {why}");

@@ -1,0 +1,192 @@
+//! Evaluation of the localizers on a dataset split (ROI crops with ground truth): pixel
+//! precision / recall / IoU of the mask, keypoint errors in mm and per-crop latency, for the UNet
+//! and the classical localizer on the same inputs.
+
+use std::time::Instant;
+
+use millinav_unet::dataset::Split;
+use millinav_unet::roi::{Crop, DOWNSAMPLE, INPUT_PX};
+use opencv::prelude::*;
+
+use crate::classical::ClassicalLocalizer;
+use crate::unet::{detection_from_output, UnetLocalizer};
+
+/// Metrics of one localizer over a split.
+#[derive(Debug, Clone, Default)]
+pub struct Report {
+    pub name: &'static str,
+    pub samples: usize,
+    pub precision: f64,
+    pub recall: f64,
+    pub iou: f64,
+    /// Detections on crops with a robot / crops with a robot.
+    pub detection_rate: f64,
+    /// Detections on crops without a robot / crops without a robot.
+    pub false_detection_rate: f64,
+    pub centroid_err_mm_median: f64,
+    pub centroid_err_mm_p95: f64,
+    pub tip_err_mm_median: f64,
+    pub tip_err_mm_p95: f64,
+    pub latency_ms_median: f64,
+    pub latency_ms_p99: f64,
+}
+
+fn quantile(values: &mut [f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    values.sort_by(|a, b| a.total_cmp(b));
+    let i = ((values.len() - 1) as f64 * q).round() as usize;
+    values[i]
+}
+
+#[derive(Default)]
+struct Tally {
+    tp: u64,
+    fp: u64,
+    fn_: u64,
+    found: usize,
+    with_robot: usize,
+    false_found: usize,
+    without_robot: usize,
+    centroid: Vec<f64>,
+    tip: Vec<f64>,
+    latency_ms: Vec<f64>,
+}
+
+impl Tally {
+    fn mask(&mut self, predicted: &[u8], truth: &[u8]) {
+        for (p, t) in predicted.iter().zip(truth) {
+            match (*p > 0, *t > 0) {
+                (true, true) => self.tp += 1,
+                (true, false) => self.fp += 1,
+                (false, true) => self.fn_ += 1,
+                _ => {}
+            }
+        }
+    }
+
+    fn report(mut self, name: &'static str, samples: usize) -> Report {
+        let tp = self.tp as f64;
+        Report {
+            name,
+            samples,
+            precision: tp / (tp + self.fp as f64).max(1.0),
+            recall: tp / (tp + self.fn_ as f64).max(1.0),
+            iou: tp / (tp + self.fp as f64 + self.fn_ as f64).max(1.0),
+            detection_rate: self.found as f64 / self.with_robot.max(1) as f64,
+            false_detection_rate: self.false_found as f64 / self.without_robot.max(1) as f64,
+            centroid_err_mm_median: quantile(&mut self.centroid, 0.5),
+            centroid_err_mm_p95: quantile(&mut self.centroid, 0.95),
+            tip_err_mm_median: quantile(&mut self.tip, 0.5),
+            tip_err_mm_p95: quantile(&mut self.tip, 0.95),
+            latency_ms_median: quantile(&mut self.latency_ms, 0.5),
+            latency_ms_p99: quantile(&mut self.latency_ms, 0.99),
+        }
+    }
+}
+
+fn dist(a: (f64, f64), b: (f64, f64)) -> f64 {
+    ((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt()
+}
+
+/// The UNet on every crop, through the service's own post-processing.
+pub fn evaluate_unet(unet: &mut UnetLocalizer, split: &Split, expected_length_px: f64) -> Report {
+    let mut t = Tally::default();
+    // The crop origin does not matter for errors measured in input pixels.
+    let crop = Crop { col0: 0, row0: 0 };
+    let f = DOWNSAMPLE as f64;
+    for i in 0..split.len() {
+        let label = &split.labels[i];
+        let start = Instant::now();
+        let out = unet.infer(split.image(i));
+        let detection = out
+            .as_ref()
+            .ok()
+            .map(|o| detection_from_output(o, &crop, expected_length_px));
+        t.latency_ms.push(start.elapsed().as_secs_f64() * 1e3);
+        if let Ok(o) = &out {
+            t.mask(&o.mask, split.mask(i));
+        }
+        let found = matches!(detection, Some(Ok(_)));
+        let mm_per_input_px = label.mm_per_px * f;
+        if label.has_robot {
+            t.with_robot += 1;
+            if let Some(Ok(d)) = detection {
+                t.found += 1;
+                // Detection is in frame pixels of a crop at (0, 0): back to input pixels.
+                let c = crop.frame_to_input(d.centroid_px.0, d.centroid_px.1);
+                let tip = crop.frame_to_input(d.tip_px.0, d.tip_px.1);
+                t.centroid.push(dist(c, label.centroid) * mm_per_input_px);
+                t.tip.push(dist(tip, label.tip) * mm_per_input_px);
+            }
+        } else {
+            t.without_robot += 1;
+            t.false_found += usize::from(found);
+        }
+    }
+    t.report("unet", split.len())
+}
+
+/// The classical localizer on the same crops (treated as frames at the crop's resolution).
+pub fn evaluate_classical(classical: &ClassicalLocalizer, split: &Split) -> Report {
+    let mut t = Tally::default();
+    let n = INPUT_PX as i32;
+    let f = DOWNSAMPLE as f64;
+    for i in 0..split.len() {
+        let label = &split.labels[i];
+        let mm_per_input_px = label.mm_per_px * f;
+        let start = Instant::now();
+        let result = classical.localize(split.image(i), n, n, (0, 0, n, n), mm_per_input_px);
+        t.latency_ms.push(start.elapsed().as_secs_f64() * 1e3);
+        let mut predicted = vec![0u8; INPUT_PX * INPUT_PX];
+        if let Ok((_, mask)) = &result {
+            for (row, chunk) in predicted.chunks_mut(INPUT_PX).enumerate() {
+                if let Ok(line) = mask.at_row::<u8>(row as i32) {
+                    for (p, v) in chunk.iter_mut().zip(line) {
+                        *p = u8::from(*v > 0);
+                    }
+                }
+            }
+        }
+        t.mask(&predicted, split.mask(i));
+        if label.has_robot {
+            t.with_robot += 1;
+            if let Ok((d, _)) = &result {
+                t.found += 1;
+                t.centroid.push(dist(d.centroid_px, label.centroid) * mm_per_input_px);
+                t.tip.push(dist(d.tip_px, label.tip) * mm_per_input_px);
+            }
+        } else {
+            t.without_robot += 1;
+            t.false_found += usize::from(result.is_ok());
+        }
+    }
+    t.report("classical", split.len())
+}
+
+/// A Markdown table of reports side by side.
+pub fn table(reports: &[Report]) -> String {
+    let mut out = String::from(
+        "| localizer | samples | precision | recall | IoU | detected | false det. | centroid err mm (median / p95) | tip err mm (median / p95) | latency ms (median / p99) |\n|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for r in reports {
+        out.push_str(&format!(
+            "| {} | {} | {:.2} % | {:.2} % | {:.2} % | {:.1} % | {:.1} % | {:.3} / {:.3} | {:.3} / {:.3} | {:.2} / {:.2} |\n",
+            r.name,
+            r.samples,
+            100.0 * r.precision,
+            100.0 * r.recall,
+            100.0 * r.iou,
+            100.0 * r.detection_rate,
+            100.0 * r.false_detection_rate,
+            r.centroid_err_mm_median,
+            r.centroid_err_mm_p95,
+            r.tip_err_mm_median,
+            r.tip_err_mm_p95,
+            r.latency_ms_median,
+            r.latency_ms_p99
+        ));
+    }
+    out
+}
