@@ -26,7 +26,7 @@ if [ ! -x "$VENV/bin/python" ]; then
   mkdir -p "$(dirname "$VENV")"
   python3 -m venv "$VENV"
 fi
-if ! "$VENV/bin/python" -c "import rerun, onnxruntime, sys; sys.exit(0 if rerun.__version__ == '$RERUN_SDK_VERSION' else 1)" >/dev/null 2>&1; then
+if ! "$VENV/bin/python" -c "import rerun, onnxruntime, magpylib, sys; sys.exit(0 if rerun.__version__ == '$RERUN_SDK_VERSION' else 1)" >/dev/null 2>&1; then
   echo "setup: installing rerun-sdk==$RERUN_SDK_VERSION and onnxruntime into $VENV"
-  "$VENV/bin/pip" install -q --disable-pip-version-check "rerun-sdk==$RERUN_SDK_VERSION" onnxruntime
+  "$VENV/bin/pip" install -q --disable-pip-version-check "rerun-sdk==$RERUN_SDK_VERSION" onnxruntime magpylib
 fi

@@ -1,10 +1,12 @@
-//! Current allocation: paper Eq. 2 (actuation matrix), Eq. 3–4 (SVD pseudo-inverse), and the
-//! uniform current/power limiting that keeps the commanded direction of C.
+//! Current allocation: paper Eq. 2 (actuation matrix), Eq. 3–4 (SVD pseudo-inverse), the
+//! uniform current/power limiting that keeps the commanded direction of C, and a constrained
+//! allocation (second-order cone program solved with Clarabel) that meets C exactly whenever
+//! the per-coil and total-power limits allow it and otherwise returns the best limited fit.
 
 use nalgebra::{DMatrix, DVector, Vector3};
 use thiserror::Error;
 
-use crate::coils::{paper_coil_id, CoilSize, CoilSystem, CoilUnit, COIL_COUNT};
+use crate::coils::{paper_coil_id, CoilField, CoilSize, CoilSystem, CoilUnit, COIL_COUNT};
 use crate::physics::magnetic_force;
 use crate::rig::CoilLimits;
 
@@ -40,6 +42,10 @@ pub enum AllocationError {
     SvdFailed,
     #[error("invalid tolerance {0}")]
     BadTolerance(f64),
+    #[error("invalid coil limits: {0}")]
+    BadLimits(String),
+    #[error("invalid allocation settings: {0}")]
+    BadSettings(&'static str),
 }
 
 /// Paper Eq. 2: the 4 × n map from the currents of `coil_ids` to
@@ -51,6 +57,18 @@ pub enum AllocationError {
 /// them once with [`CoilSystem::check_ids`]).
 pub fn actuation_matrix(
     coils: &CoilSystem,
+    p: &Vector3<f64>,
+    moment: &Vector3<f64>,
+    coil_ids: &[usize],
+    omega0: f64,
+) -> DMatrix<f64> {
+    actuation_matrix_from(coils, p, moment, coil_ids, omega0)
+}
+
+/// [`actuation_matrix`] for any coil-field source, e.g. the interpolated grid maps
+/// ([`crate::fieldmap::CoilFieldMaps`]) instead of the direct model.
+pub fn actuation_matrix_from<F: CoilField + ?Sized>(
+    coils: &F,
     p: &Vector3<f64>,
     moment: &Vector3<f64>,
     coil_ids: &[usize],
@@ -166,6 +184,304 @@ pub fn allocate_limited(
         1.0
     };
     Ok(Allocation { currents_a, scale })
+}
+
+/// How [`allocate_constrained`] met the command C.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AllocationStatus {
+    /// A·I = C (to `feasibility_tol`) within the limits; among such currents, least ‖I‖.
+    Exact,
+    /// C is not reachable within the limits (or A cannot produce it at all): the currents
+    /// minimise ‖A·I − C‖²_W + ε‖I‖² subject to the limits (least-squares best effort).
+    BestEffort,
+    /// The solver failed; the currents are [`allocate_limited`]'s (pseudo-inverse, uniformly
+    /// scaled into the limits). Still within the limits.
+    Fallback,
+}
+
+/// Settings of [`allocate_constrained`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConstrainedSettings {
+    /// Weight of each row of A·I − C in the best-effort objective (W = diag of these; all ≥ 0,
+    /// not all 0). `None`: all ones. In the paper's C = [F_x, F_y, ω0 B_x, ω0 B_y], ω0 already
+    /// balances the units, so equal weights are the natural default.
+    pub row_weights: Option<DVector<f64>>,
+    /// ε, relative: the objective is ‖Â x − Ĉ‖² + ε‖x‖² with x = I / I_max and Â = W^½ A I_max
+    /// scaled to unit Frobenius norm (so ε is dimensionless; 1e-6 barely biases the fit).
+    pub regularization: f64,
+    /// C counts as met when ‖W^½(A·I − C)‖ ≤ feasibility_tol · ‖W^½ C‖.
+    pub feasibility_tol: f64,
+    /// Interior-point iteration cap per solve.
+    pub max_iter: u32,
+}
+
+impl Default for ConstrainedSettings {
+    fn default() -> Self {
+        Self {
+            row_weights: None,
+            regularization: 1e-6,
+            feasibility_tol: 1e-6,
+            max_iter: 100,
+        }
+    }
+}
+
+/// Result of [`allocate_constrained`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConstrainedAllocation {
+    /// Currents, A; always |I_k| ≤ I_max and Σ I_k² R ≤ P_max.
+    pub currents_a: DVector<f64>,
+    pub status: AllocationStatus,
+    /// ‖W^½(A·I − C)‖ / ‖W^½ C‖ (0 for C = 0).
+    pub relative_residual: f64,
+    /// Interior-point iterations over all solves.
+    pub iterations: u32,
+}
+
+/// Constrained allocation: minimise ‖A·I − C‖²_W + ε‖I‖² subject to |I_k| ≤ I_max (box) and
+/// Σ I_k² R ≤ P_max (a second-order cone: ‖I‖₂ ≤ √(P_max/R)), solved with Clarabel.
+///
+/// Two stages: (1) least ‖I‖ subject to A·I = C and the limits. If that is feasible the
+/// status is [`AllocationStatus::Exact`]. (2) Otherwise the regularised weighted least squares
+/// above, flagged [`AllocationStatus::BestEffort`]. Unlike [`allocate_limited`] (uniform
+/// scaling, which keeps C's direction but gives up magnitude as soon as one coil saturates),
+/// this redistributes current to the coils with headroom, so it meets strictly more commands.
+///
+/// Whatever the solver returns, the currents are passed through [`clamp_to_limits`], so the
+/// limits hold exactly (no solver tolerance leaks through). Clarabel 0.11 is an interior-point
+/// solver without warm start, so every call solves from scratch (≈ 10–20 iterations for 8–12
+/// coils).
+pub fn allocate_constrained(
+    a: &DMatrix<f64>,
+    c: &DVector<f64>,
+    limits: &CoilLimits,
+    settings: &ConstrainedSettings,
+) -> Result<ConstrainedAllocation, AllocationError> {
+    if a.nrows() != c.len() {
+        return Err(AllocationError::DimensionMismatch {
+            rows: a.nrows(),
+            len: c.len(),
+        });
+    }
+    if a.iter().chain(c.iter()).any(|v| !v.is_finite()) {
+        return Err(AllocationError::NonFinite);
+    }
+    limits
+        .validate()
+        .map_err(|e| AllocationError::BadLimits(e.to_string()))?;
+    let eps = settings.regularization;
+    if !(eps.is_finite() && eps >= 0.0) {
+        return Err(AllocationError::BadSettings(
+            "regularization must be finite and >= 0",
+        ));
+    }
+    let tol = settings.feasibility_tol;
+    if !(tol.is_finite() && tol > 0.0 && tol < 1.0) {
+        return Err(AllocationError::BadSettings(
+            "feasibility_tol must be in (0, 1)",
+        ));
+    }
+    if settings.max_iter == 0 {
+        return Err(AllocationError::BadSettings("max_iter must be > 0"));
+    }
+    let w_sqrt = match &settings.row_weights {
+        None => DVector::from_element(a.nrows(), 1.0),
+        Some(w) => {
+            if w.len() != a.nrows() {
+                return Err(AllocationError::BadSettings(
+                    "row_weights must have one entry per row of A",
+                ));
+            }
+            if w.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || w.iter().all(|&v| v == 0.0) {
+                return Err(AllocationError::BadSettings(
+                    "row_weights must be finite, >= 0 and not all 0",
+                ));
+            }
+            w.map(f64::sqrt)
+        }
+    };
+    let n = a.ncols();
+    if n == 0 {
+        return Err(AllocationError::Degenerate);
+    }
+    let i_max = limits.max_current_a;
+    // Normalised problem: x = I / I_max, Â = W^½ A I_max / s, Ĉ = W^½ C / s with ‖Â‖_F = 1.
+    let aw = DMatrix::from_fn(a.nrows(), n, |r, k| w_sqrt[r] * a[(r, k)] * i_max);
+    let cw = c.component_mul(&w_sqrt);
+    let s = aw.norm();
+    if !(s.is_finite() && s > 0.0) {
+        return Err(AllocationError::Degenerate);
+    }
+    let ah = aw / s;
+    let ch = &cw / s;
+    let rho = (limits.max_total_power_w / limits.coil_resistance_ohm).sqrt() / i_max;
+    let residual_of = |x: &DVector<f64>| {
+        let cn = ch.norm();
+        if cn == 0.0 {
+            0.0
+        } else {
+            (&ah * x - &ch).norm() / cn
+        }
+    };
+    if ch.norm() == 0.0 {
+        return Ok(ConstrainedAllocation {
+            currents_a: DVector::zeros(n),
+            status: AllocationStatus::Exact,
+            relative_residual: 0.0,
+            iterations: 0,
+        });
+    }
+
+    let mut iterations = 0;
+    let finish = |mut x: DVector<f64>, status: AllocationStatus, iterations: u32| {
+        let mut currents_a = x.clone() * i_max;
+        clamp_to_limits(&mut currents_a, limits);
+        x = &currents_a / i_max;
+        let relative_residual = residual_of(&x);
+        let status = match status {
+            AllocationStatus::Exact if relative_residual > tol => AllocationStatus::BestEffort,
+            AllocationStatus::BestEffort if relative_residual <= tol => AllocationStatus::Exact,
+            other => other,
+        };
+        ConstrainedAllocation {
+            currents_a,
+            status,
+            relative_residual,
+            iterations,
+        }
+    };
+
+    // Stage 1: least norm subject to Â x = Ĉ and the limits.
+    let p1 = dense_csc_upper(&DMatrix::identity(n, n));
+    let q1 = vec![0.0; n];
+    if let Some(sol) = solve_limited_socp(&p1, &q1, Some((&ah, &ch)), rho, settings.max_iter) {
+        iterations += sol.iterations;
+        if let Some(mut x) = sol.x {
+            // Polish: remove the interior-point tolerance from the equality by a least-norm
+            // correction (tiny; the final clamp absorbs any limit overshoot it causes).
+            if let Ok(dx) = allocate_pinv(&ah, &(&ch - &ah * &x)) {
+                let polished = &x + dx;
+                if residual_of(&polished) < residual_of(&x) {
+                    x = polished;
+                }
+            }
+            if residual_of(&x) <= tol {
+                return Ok(finish(x, AllocationStatus::Exact, iterations));
+            }
+        }
+    }
+
+    // Stage 2: min ‖Â x − Ĉ‖² + ε‖x‖² (½xᵀPx + qᵀx with P = 2(ÂᵀÂ + εI), q = −2ÂᵀĈ).
+    let p2 = dense_csc_upper(&((ah.tr_mul(&ah) + DMatrix::identity(n, n) * eps) * 2.0));
+    let q2: Vec<f64> = (ah.tr_mul(&ch) * -2.0).iter().copied().collect();
+    if let Some(sol) = solve_limited_socp(&p2, &q2, None, rho, settings.max_iter) {
+        iterations += sol.iterations;
+        if let Some(x) = sol.x {
+            return Ok(finish(x, AllocationStatus::BestEffort, iterations));
+        }
+    }
+
+    // Solver failure: the uniform-scaling fallback, still within the limits.
+    let fb = allocate_limited(a, c, limits)?;
+    let x = &fb.currents_a / i_max;
+    Ok(finish(x, AllocationStatus::Fallback, iterations))
+}
+
+struct SocpSolution {
+    /// `None` unless the solver reports (almost) solved with a finite x.
+    x: Option<DVector<f64>>,
+    iterations: u32,
+}
+
+/// Column-major CSC of the upper triangle of a square matrix (Clarabel's P format). All
+/// upper entries are stored, zeros included, so the pattern never depends on the data.
+fn dense_csc_upper(m: &DMatrix<f64>) -> clarabel::algebra::CscMatrix<f64> {
+    let n = m.ncols();
+    let mut colptr = Vec::with_capacity(n + 1);
+    let mut rowval = Vec::new();
+    let mut nzval = Vec::new();
+    colptr.push(0);
+    for j in 0..n {
+        for i in 0..=j {
+            rowval.push(i);
+            nzval.push(m[(i, j)]);
+        }
+        colptr.push(rowval.len());
+    }
+    clarabel::algebra::CscMatrix::new(n, n, colptr, rowval, nzval)
+}
+
+/// Solve min ½xᵀPx + qᵀx s.t. [Â x = Ĉ], |x_k| ≤ 1, ‖x‖₂ ≤ rho with Clarabel.
+fn solve_limited_socp(
+    p: &clarabel::algebra::CscMatrix<f64>,
+    q: &[f64],
+    equality: Option<(&DMatrix<f64>, &DVector<f64>)>,
+    rho: f64,
+    max_iter: u32,
+) -> Option<SocpSolution> {
+    use clarabel::solver::{
+        DefaultSettings, DefaultSolver, IPSolver, SolverStatus, SupportedConeT,
+    };
+    let n = q.len();
+    let m_eq = equality.map_or(0, |(a, _)| a.nrows());
+    // Constraint rows (Clarabel form G x + s = h, s ∈ K):
+    //   [Â]  x + s = Ĉ         s ∈ {0}^m      (stage 1 only)
+    //   [ I] x + s = 1         s ≥ 0          (x ≤ 1)
+    //   [−I] x + s = 1         s ≥ 0          (−x ≤ 1)
+    //   [0ᵀ; −I] x + s = [rho; 0]   s ∈ SOC    (‖x‖ ≤ rho)
+    let rows = m_eq + 2 * n + 1 + n;
+    let mut colptr = Vec::with_capacity(n + 1);
+    let mut rowval = Vec::new();
+    let mut nzval = Vec::new();
+    colptr.push(0);
+    for k in 0..n {
+        if let Some((a, _)) = equality {
+            for r in 0..m_eq {
+                rowval.push(r);
+                nzval.push(a[(r, k)]);
+            }
+        }
+        rowval.push(m_eq + k);
+        nzval.push(1.0);
+        rowval.push(m_eq + n + k);
+        nzval.push(-1.0);
+        rowval.push(m_eq + 2 * n + 1 + k);
+        nzval.push(-1.0);
+        colptr.push(rowval.len());
+    }
+    let g = clarabel::algebra::CscMatrix::new(rows, n, colptr, rowval, nzval);
+    let mut h = Vec::with_capacity(rows);
+    if let Some((_, c)) = equality {
+        h.extend(c.iter().copied());
+    }
+    h.extend(std::iter::repeat_n(1.0, 2 * n));
+    h.push(rho);
+    h.extend(std::iter::repeat_n(0.0, n));
+    let mut cones = Vec::with_capacity(3);
+    if m_eq > 0 {
+        cones.push(SupportedConeT::ZeroConeT(m_eq));
+    }
+    cones.push(SupportedConeT::NonnegativeConeT(2 * n));
+    cones.push(SupportedConeT::SecondOrderConeT(n + 1));
+    let settings = DefaultSettings {
+        verbose: false,
+        max_iter,
+        tol_gap_abs: 1e-10,
+        tol_gap_rel: 1e-10,
+        tol_feas: 1e-10,
+        ..DefaultSettings::default()
+    };
+    let mut solver = DefaultSolver::new(p, q, &g, &h, &cones, settings).ok()?;
+    solver.solve();
+    let sol = &solver.solution;
+    let ok = matches!(
+        sol.status,
+        SolverStatus::Solved | SolverStatus::AlmostSolved
+    ) && sol.x.iter().all(|v| v.is_finite());
+    Some(SocpSolution {
+        x: ok.then(|| DVector::from_column_slice(&sol.x)),
+        iterations: sol.iterations,
+    })
 }
 
 #[cfg(test)]
@@ -326,6 +642,221 @@ mod tests {
         let out = allocate_limited(&a, &c, &CoilLimits::default()).unwrap();
         assert!(out.scale < 1.0 && out.scale > 0.0);
         assert!((&a * &out.currents_a - &c * out.scale).norm() < 1e-9 * c.norm() * out.scale);
+    }
+
+    fn within_limits(i: &DVector<f64>, limits: &CoilLimits) -> bool {
+        i.amax() <= limits.max_current_a
+            && i.norm_squared() * limits.coil_resistance_ohm <= limits.max_total_power_w
+    }
+
+    #[test]
+    fn constrained_meets_feasible_commands_exactly() {
+        let sys = CoilSystem::paper_rig();
+        let limits = CoilLimits::default();
+        let settings = ConstrainedSettings::default();
+        let (mut exact_qp, mut exact_uniform, mut total, mut iters) = (0, 0, 0, 0);
+        let t0 = std::time::Instant::now();
+        for p2 in canal_points() {
+            let p = Vector3::new(p2.x, p2.y, 0.0);
+            for &heading in &[0.0_f64, 45.0, 90.0, 135.0, 200.0, -60.0] {
+                let th = heading.to_radians();
+                let m = in_plane_moment(8.6e-4, th);
+                for ids in [&DEFAULT_PLANAR_COILS[..], &ALL_COILS[..]] {
+                    let a = actuation_matrix(&sys, &p, &m, ids, OMEGA0);
+                    for k in 0..8 {
+                        let phi = k as f64 * std::f64::consts::FRAC_PI_4;
+                        // 20 µN and 50 µN in any direction, 1 mT along the heading: some are
+                        // out of reach at some headings (see the test above).
+                        for f in [2e-5, 5e-5] {
+                            let c = DVector::from_vec(vec![
+                                f * phi.cos(),
+                                f * phi.sin(),
+                                OMEGA0 * 1e-3 * th.cos(),
+                                OMEGA0 * 1e-3 * th.sin(),
+                            ]);
+                            let out = allocate_constrained(&a, &c, &limits, &settings).unwrap();
+                            iters += out.iterations;
+                            total += 1;
+                            assert!(within_limits(&out.currents_a, &limits));
+                            let res = (&a * &out.currents_a - &c).norm() / c.norm();
+                            assert!((res - out.relative_residual).abs() < 1e-9);
+                            if out.status == AllocationStatus::Exact {
+                                exact_qp += 1;
+                                assert!(res <= settings.feasibility_tol, "{res}");
+                            }
+                            let uniform = allocate_limited(&a, &c, &limits).unwrap();
+                            if uniform.scale == 1.0 {
+                                exact_uniform += 1;
+                                // Reachable without scaling ⇒ the QP must find it too.
+                                assert_eq!(
+                                    out.status,
+                                    AllocationStatus::Exact,
+                                    "p={p2:?} h={heading}"
+                                );
+                            }
+                            if f == 2e-5 && heading == 45.0 {
+                                // Within what `paper_heading_commands_fit_the_limits` shows.
+                                assert_eq!(out.status, AllocationStatus::Exact, "p={p2:?}");
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        let dt = t0.elapsed().as_secs_f64() / total as f64;
+        println!(
+            "constrained: {exact_qp}/{total} commands met exactly (uniform scaling: \
+             {exact_uniform}); {:.1} interior-point iterations, {:.2} ms per allocation",
+            iters as f64 / total as f64,
+            dt * 1e3
+        );
+        assert!(exact_qp >= exact_uniform);
+    }
+
+    #[test]
+    fn constrained_never_exceeds_limits() {
+        let sys = CoilSystem::paper_rig();
+        let mut rng = Lcg(7);
+        let settings = ConstrainedSettings::default();
+        let mut counts = [0usize; 3];
+        for trial in 0..400 {
+            // Random tighter limits too, so both the box and the power cone bind.
+            let limits = if trial % 2 == 0 {
+                CoilLimits::default()
+            } else {
+                CoilLimits {
+                    max_current_a: 1.0 + 5.0 * rng.next().abs(),
+                    max_total_power_w: 100.0 + 2000.0 * rng.next().abs(),
+                    coil_resistance_ohm: 10.0,
+                }
+            };
+            let p = Vector3::new(0.04 * rng.next(), 0.04 * rng.next(), 0.005 * rng.next());
+            let m = in_plane_moment(8.6e-4, 3.2 * rng.next());
+            let ids: &[usize] = if trial % 3 == 0 {
+                &DEFAULT_PLANAR_COILS
+            } else {
+                &ALL_COILS
+            };
+            let a = actuation_matrix(&sys, &p, &m, ids, OMEGA0);
+            let mag = 10f64.powf(3.0 * rng.next()); // 1e-3 .. 1e3 × (50 µN, 5 mT·ω0)
+            let c = DVector::from_vec(vec![
+                5e-5 * mag * rng.next(),
+                5e-5 * mag * rng.next(),
+                OMEGA0 * 5e-3 * mag * rng.next(),
+                OMEGA0 * 5e-3 * mag * rng.next(),
+            ]);
+            let out = allocate_constrained(&a, &c, &limits, &settings).unwrap();
+            assert!(
+                within_limits(&out.currents_a, &limits),
+                "trial {trial}: {}",
+                out.currents_a
+            );
+            counts[out.status as usize] += 1;
+            match out.status {
+                AllocationStatus::Exact => assert!(out.relative_residual <= 1e-6),
+                _ => {
+                    // Best effort is never worse than the uniform scaling it replaces.
+                    let u = allocate_limited(&a, &c, &limits).unwrap();
+                    let ru = (&a * &u.currents_a - &c).norm() / c.norm();
+                    assert!(
+                        out.relative_residual <= ru * (1.0 + 1e-6) + 1e-9,
+                        "{} vs {ru}",
+                        out.relative_residual
+                    );
+                }
+            }
+        }
+        println!(
+            "random commands: exact {}, best effort {}, fallback {}",
+            counts[0], counts[1], counts[2]
+        );
+        assert!(counts[0] > 50 && counts[1] > 50, "{counts:?}");
+        assert_eq!(counts[2], 0);
+    }
+
+    #[test]
+    fn constrained_bad_inputs() {
+        let a = DMatrix::from_element(4, 8, 1e-4);
+        let limits = CoilLimits::default();
+        let s = ConstrainedSettings::default();
+        assert!(matches!(
+            allocate_constrained(&a, &DVector::zeros(3), &limits, &s),
+            Err(AllocationError::DimensionMismatch { .. })
+        ));
+        let c = DVector::from_vec(vec![1e-5, 0.0, 0.0, f64::NAN]);
+        assert_eq!(
+            allocate_constrained(&a, &c, &limits, &s),
+            Err(AllocationError::NonFinite)
+        );
+        let c = DVector::from_vec(vec![1e-5, 0.0, 0.0, 0.0]);
+        let bad = CoilLimits {
+            max_current_a: -1.0,
+            ..limits
+        };
+        assert!(matches!(
+            allocate_constrained(&a, &c, &bad, &s),
+            Err(AllocationError::BadLimits(_))
+        ));
+        for s2 in [
+            ConstrainedSettings {
+                regularization: -1.0,
+                ..Default::default()
+            },
+            ConstrainedSettings {
+                feasibility_tol: 0.0,
+                ..Default::default()
+            },
+            ConstrainedSettings {
+                max_iter: 0,
+                ..Default::default()
+            },
+            ConstrainedSettings {
+                row_weights: Some(DVector::zeros(4)),
+                ..Default::default()
+            },
+            ConstrainedSettings {
+                row_weights: Some(DVector::from_element(3, 1.0)),
+                ..Default::default()
+            },
+        ] {
+            assert!(matches!(
+                allocate_constrained(&a, &c, &limits, &s2),
+                Err(AllocationError::BadSettings(_))
+            ));
+        }
+        assert_eq!(
+            allocate_constrained(&DMatrix::zeros(4, 8), &c, &limits, &s),
+            Err(AllocationError::Degenerate)
+        );
+        // Zero command: zero currents, exact.
+        let out = allocate_constrained(&a, &DVector::zeros(4), &limits, &s).unwrap();
+        assert_eq!(out.status, AllocationStatus::Exact);
+        assert_eq!(out.currents_a, DVector::zeros(8));
+        // Rank 1 A with a C outside its range: best effort, finite, within limits.
+        let c = DVector::from_vec(vec![1e-4, -2e-4, 3e-4, 0.0]);
+        let out = allocate_constrained(&a, &c, &limits, &s).unwrap();
+        assert_eq!(out.status, AllocationStatus::BestEffort);
+        assert!(within_limits(&out.currents_a, &limits));
+        // Weighted rows: weight 0 on the field rows ⇒ only the force is matched.
+        let sys = CoilSystem::paper_rig();
+        let a = actuation_matrix(
+            &sys,
+            &Vector3::zeros(),
+            &in_plane_moment(8.6e-4, 0.3),
+            &DEFAULT_PLANAR_COILS,
+            OMEGA0,
+        );
+        let c = DVector::from_vec(vec![1e-4, 0.0, 10.0, 0.0]);
+        let w = ConstrainedSettings {
+            row_weights: Some(DVector::from_vec(vec![1.0, 1.0, 0.0, 0.0])),
+            ..Default::default()
+        };
+        let out = allocate_constrained(&a, &c, &limits, &w).unwrap();
+        let f = &a * &out.currents_a;
+        assert!(
+            (f[0] - 1e-4).abs() < 1e-6 * 1e-4 && f[1].abs() < 1e-9,
+            "{f}"
+        );
     }
 
     #[test]

@@ -236,6 +236,73 @@ impl CoilSystem {
     }
 }
 
+/// Anything that gives each coil's current-normalized field and gradient at a point: the direct
+/// closed-form model ([`CoilSystem`]) or the interpolated grid maps
+/// ([`crate::fieldmap::CoilFieldMaps`]). Code written against this trait can swap one for the
+/// other.
+pub trait CoilField {
+    /// Number of independently driven coils.
+    fn coil_count(&self) -> usize;
+
+    /// Field (T/A) and gradient (T/(A·m), `[(i, j)] = ∂B_i/∂x_j`) of coil `coil` per ampere at
+    /// `p` (m). Zero for an out-of-range index.
+    fn field_and_gradient_per_amp(
+        &self,
+        coil: usize,
+        p: &Vector3<f64>,
+    ) -> (Vector3<f64>, Matrix3<f64>);
+
+    /// Field of coil `coil` per ampere, T/A.
+    fn field_per_amp(&self, coil: usize, p: &Vector3<f64>) -> Vector3<f64> {
+        self.field_and_gradient_per_amp(coil, p).0
+    }
+
+    /// Superposed field (T) and gradient (T/m) for `currents_a[i]` in coil i. Currents past the
+    /// coil count are ignored and missing ones count as zero.
+    fn field_and_gradient(
+        &self,
+        currents_a: &[f64],
+        p: &Vector3<f64>,
+    ) -> (Vector3<f64>, Matrix3<f64>) {
+        let mut b = Vector3::zeros();
+        let mut g = Matrix3::zeros();
+        for (coil, &i) in currents_a.iter().enumerate().take(self.coil_count()) {
+            if i != 0.0 {
+                let (bc, gc) = self.field_and_gradient_per_amp(coil, p);
+                b += bc * i;
+                g += gc * i;
+            }
+        }
+        (b, g)
+    }
+}
+
+impl CoilField for CoilSystem {
+    fn coil_count(&self) -> usize {
+        self.coils.len()
+    }
+
+    fn field_and_gradient_per_amp(
+        &self,
+        coil: usize,
+        p: &Vector3<f64>,
+    ) -> (Vector3<f64>, Matrix3<f64>) {
+        CoilSystem::field_and_gradient_per_amp(self, coil, p)
+    }
+
+    fn field_per_amp(&self, coil: usize, p: &Vector3<f64>) -> Vector3<f64> {
+        CoilSystem::field_per_amp(self, coil, p)
+    }
+
+    fn field_and_gradient(
+        &self,
+        currents_a: &[f64],
+        p: &Vector3<f64>,
+    ) -> (Vector3<f64>, Matrix3<f64>) {
+        CoilSystem::field_and_gradient(self, currents_a, p)
+    }
+}
+
 /// Geometry of the paper rig (the paper gives only "12 planar coils, 4 units of 3 concentric
 /// coils, axes in the x–y plane, around a 10×10×10 cm workspace"; the rest is our choice).
 ///

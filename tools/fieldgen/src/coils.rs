@@ -1,9 +1,539 @@
-//! `fieldgen coils` (being written).
+//! `fieldgen coils`: calibrate the 12-coil Biot–Savart model to the paper's FEA case, sample
+//! current-normalized field maps B̃_i, ∇B̃_i on a 3D grid over the workspace, write them in the
+//! format of `fieldmaps/coils/FORMAT.md`, verify the interpolated maps against the direct model,
+//! and cross-check the direct model against magpylib.
+//!
+//! `fieldgen coils --check` prints every number of the README section (calibration, interpolation
+//! error of the committed maps, magpylib max relative error) without rewriting anything.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use anyhow::{bail, Context};
+use fieldmaps::coils::{
+    calibrate_paper_rig, CoilField, CoilSystem, PaperRigLayout, PAPER_CALIBRATION_COILS,
+    PAPER_CALIBRATION_POWER_W, PAPER_GRADIENT_T_PER_M, PAPER_PEAK_FIELD_T,
+};
+use fieldmaps::fieldmap::{sample_coil, CoilFieldMaps, CoilInfo, GridSpec, Interpolation};
+use fieldmaps::rig::CoilLimits;
+use indicatif::{ProgressBar, ProgressStyle};
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
 
 /// Arguments of `fieldgen coils`.
 #[derive(Debug, clap::Args)]
-pub struct CoilsArgs {}
+pub struct CoilsArgs {
+    /// Map directory to write (or, with --check, to verify). Default: fieldmaps/coils in this
+    /// repository.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Grid spacing, mm (shrunk slightly if needed so nodes land on the faces).
+    #[arg(long, default_value_t = 2.0)]
+    pub spacing_mm: f64,
+    /// Half-extent of the grid along x and y, mm (the workspace is ±50 mm).
+    #[arg(long, default_value_t = 50.0)]
+    pub half_xy_mm: f64,
+    /// Half-extent of the grid along z, mm (z = 0 is the control plane).
+    #[arg(long, default_value_t = 8.0)]
+    pub half_z_mm: f64,
+    /// Do not regenerate: verify the existing maps and run the magpylib cross-check.
+    #[arg(long)]
+    pub check: bool,
+    /// Also run the magpylib cross-check after generating (always on with --check).
+    #[arg(long)]
+    pub magpylib: bool,
+    /// Random points for the interpolation check.
+    #[arg(long, default_value_t = 4000)]
+    pub verify_points: usize,
+    /// Seed of the random verification points.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Worker threads for sampling.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Write the coils' filaments (centre, axis, radius, turns) as JSON to this file and exit.
+    #[arg(long)]
+    pub export_loops: Option<PathBuf>,
+    /// Evaluate the direct model at the points of this JSON file ({"points_m": [[x, y, z], ...]})
+    /// and exit; the result goes to --probe-out.
+    #[arg(long, requires = "probe_out")]
+    pub probe: Option<PathBuf>,
+    /// Output JSON of --probe.
+    #[arg(long, requires = "probe")]
+    pub probe_out: Option<PathBuf>,
+    /// Python with magpylib for the cross-check. Default: $MILLINAV_VENV/bin/python, else
+    /// ~/.cache/millinav/venv/bin/python.
+    #[arg(long)]
+    pub python: Option<PathBuf>,
+}
 
-pub fn run(_args: &CoilsArgs) -> anyhow::Result<()> {
-    anyhow::bail!("fieldgen coils is not built yet")
+pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
+    let system = CoilSystem::paper_rig();
+    if let Some(path) = &args.export_loops {
+        write_json(path, &export_loops(&system))?;
+        println!(
+            "wrote {} coils' filaments to {}",
+            system.len(),
+            path.display()
+        );
+        return Ok(());
+    }
+    if let (Some(points), Some(out)) = (&args.probe, &args.probe_out) {
+        let text = std::fs::read_to_string(points)
+            .with_context(|| format!("reading {}", points.display()))?;
+        let input: ProbeInput = serde_json::from_str(&text).with_context(|| {
+            format!(
+                "{}: expected {{\"points_m\": [[x, y, z], ...]}}",
+                points.display()
+            )
+        })?;
+        let result = probe(&system, &input.points_m)
+            .with_context(|| format!("probing points of {}", points.display()))?;
+        write_json(out, &result)?;
+        println!("wrote {} probes to {}", input.points_m.len(), out.display());
+        return Ok(());
+    }
+
+    let calibration = report_calibration(&system)?;
+    let dir = args.out.clone().unwrap_or_else(CoilFieldMaps::default_dir);
+    if !args.check {
+        let grid = GridSpec::centered(
+            [
+                args.half_xy_mm * 1e-3,
+                args.half_xy_mm * 1e-3,
+                args.half_z_mm * 1e-3,
+            ],
+            args.spacing_mm * 1e-3,
+        )?;
+        let maps = generate(&system, grid, args.threads.max(1))?;
+        let command = format!(
+            "fieldgen coils --spacing-mm {} --half-xy-mm {} --half-z-mm {}",
+            args.spacing_mm, args.half_xy_mm, args.half_z_mm
+        );
+        maps.write(
+            &dir,
+            "Current-normalized field and gradient of the 12 paper-rig coils (closed-form \
+             Biot-Savart, calibrated to the paper's FEA case); see FORMAT.md",
+            &command,
+            Some(calibration),
+        )?;
+        let bytes: u64 = std::fs::read_dir(&dir)?
+            .filter_map(|e| e.ok()?.metadata().ok())
+            .map(|m| m.len())
+            .sum();
+        println!(
+            "wrote {} coil maps to {} ({:.1} MB in the directory)",
+            maps.coils().len(),
+            dir.display(),
+            bytes as f64 / 1e6
+        );
+    }
+    let maps = CoilFieldMaps::load(&dir)?;
+    let g = maps.grid();
+    println!(
+        "maps: {} coils, grid {}×{}×{} nodes, spacing {:.3} mm, x,y ∈ [{:.1}, {:.1}] mm, z ∈ [{:.1}, {:.1}] mm",
+        maps.coils().len(),
+        g.shape[0],
+        g.shape[1],
+        g.shape[2],
+        g.spacing_m[0] * 1e3,
+        g.origin_m[0] * 1e3,
+        g.max_m()[0] * 1e3,
+        g.origin_m[2] * 1e3,
+        g.max_m()[2] * 1e3,
+    );
+    report_map_calibration(&maps)?;
+    println!(
+        "interpolation error vs direct Biot–Savart at {} random points in the grid box, all {} coils \
+         (relative: |ΔB̃|/|B̃| and ‖Δ∇B̃‖_F/‖∇B̃‖_F):",
+        args.verify_points,
+        maps.coils().len()
+    );
+    let mut maps = maps;
+    for scheme in [Interpolation::Quadratic, Interpolation::Trilinear] {
+        maps.set_interpolation(scheme);
+        let err = interpolation_error(&system, &maps, args.verify_points, args.seed);
+        println!(
+            "  {:<9} field max {:.2e} (99th pct {:.2e}), gradient max {:.2e} (99th pct {:.2e}){}",
+            format!("{scheme:?}"),
+            err.field_max,
+            err.field_p99,
+            err.gradient_max,
+            err.gradient_p99,
+            if scheme == Interpolation::default() {
+                "  [default]"
+            } else {
+                ""
+            }
+        );
+    }
+
+    if args.check || args.magpylib {
+        run_magpylib_check(args)?;
+    }
+    Ok(())
+}
+
+/// Print the calibration and return it as manifest provenance.
+fn report_calibration(system: &CoilSystem) -> anyhow::Result<toml::Table> {
+    let layout = PaperRigLayout::default();
+    let limits = CoilLimits::default();
+    let fit = calibrate_paper_rig(&layout, &limits)?;
+    let current = limits.current_for_power(PAPER_CALIBRATION_POWER_W)?;
+    let p = layout.calibration_point();
+    let m = fieldmaps::coils::Calibration::measure(
+        system,
+        &PAPER_CALIBRATION_COILS,
+        current,
+        &p,
+        &nalgebra::Unit::new_unchecked(Vector3::y()),
+    )?;
+    let turns: Vec<f64> = system.coils[..3].iter().map(|c| c.total_turns()).collect();
+    println!("calibration (paper FEA case: N_small + N_large at {PAPER_CALIBRATION_POWER_W} W each = {current:.3} A, R = {} Ω):", limits.coil_resistance_ohm);
+    println!(
+        "  fitted turns (small, mid, large): {:.3}, {:.3}, {:.3}; rig uses {:.3}, {:.3}, {:.3}",
+        fit.turns[0], fit.turns[1], fit.turns[2], turns[0], turns[1], turns[2]
+    );
+    println!(
+        "  measured at ({:.1}, {:.1}, {:.1}) mm (north axis, workspace face, control plane), along +y:",
+        p.x * 1e3,
+        p.y * 1e3,
+        p.z * 1e3
+    );
+    println!(
+        "  peak field {:.3} mT (paper 24.05 mT, {:+.3}%), gradient {:.3} mT/cm (paper 13.92 mT/cm, {:+.3}%)",
+        m.peak_field_t * 1e3,
+        (m.peak_field_t / PAPER_PEAK_FIELD_T - 1.0) * 100.0,
+        m.gradient_t_per_m * 10.0,
+        (m.gradient_t_per_m / PAPER_GRADIENT_T_PER_M - 1.0) * 100.0,
+    );
+    let mut t = toml::Table::new();
+    t.insert(
+        "turns_small_mid_large".into(),
+        toml::Value::try_from(turns)?,
+    );
+    t.insert("current_a".into(), current.into());
+    t.insert(
+        "coils".into(),
+        toml::Value::try_from(vec!["N_small", "N_large"])?,
+    );
+    t.insert("point_m".into(), toml::Value::try_from([p.x, p.y, p.z])?);
+    t.insert("peak_field_mT".into(), (m.peak_field_t * 1e3).into());
+    t.insert(
+        "gradient_mT_per_cm".into(),
+        (m.gradient_t_per_m * 10.0).into(),
+    );
+    t.insert(
+        "paper_peak_field_mT".into(),
+        (PAPER_PEAK_FIELD_T * 1e3).into(),
+    );
+    t.insert(
+        "paper_gradient_mT_per_cm".into(),
+        (PAPER_GRADIENT_T_PER_M * 10.0).into(),
+    );
+    Ok(t)
+}
+
+/// The paper FEA case measured on the interpolated maps (if they cover the point).
+fn report_map_calibration(maps: &CoilFieldMaps) -> anyhow::Result<()> {
+    let p = PaperRigLayout::default().calibration_point();
+    let current = CoilLimits::default().current_for_power(PAPER_CALIBRATION_POWER_W)?;
+    let mut b = Vector3::zeros();
+    let mut g = Matrix3::zeros();
+    for name in ["N_small", "N_large"] {
+        let Some(i) = maps.coil_index(name) else {
+            bail!("maps have no coil named {name}");
+        };
+        let Ok((bi, gi)) = maps.try_field_and_gradient_per_amp(i, &p) else {
+            println!("  (maps do not cover the calibration point)");
+            return Ok(());
+        };
+        b += bi * current;
+        g += gi * current;
+    }
+    let grad = b.normalize().dot(&(g * Vector3::y()));
+    println!(
+        "  same case on the interpolated maps: {:.3} mT, {:.3} mT/cm",
+        b.norm() * 1e3,
+        grad * 10.0
+    );
+    Ok(())
+}
+
+/// Sample all coils on `grid` with `threads` workers and a progress bar.
+pub fn generate(
+    system: &CoilSystem,
+    grid: GridSpec,
+    threads: usize,
+) -> anyhow::Result<CoilFieldMaps> {
+    let n = system.len();
+    let bar = ProgressBar::new((n * grid.node_count()) as u64);
+    bar.set_style(ProgressStyle::with_template(
+        "sampling {bar:40} {percent:>3}% {human_pos}/{human_len} nodes×coils, eta {eta}",
+    )?);
+    let next = AtomicUsize::new(0);
+    let mut data: Vec<Option<Vec<f32>>> = vec![None; n];
+    std::thread::scope(|s| {
+        let workers: Vec<_> = (0..threads.min(n))
+            .map(|_| {
+                s.spawn(|| {
+                    let mut done = Vec::new();
+                    loop {
+                        let coil = next.fetch_add(1, Ordering::Relaxed);
+                        if coil >= n {
+                            break done;
+                        }
+                        let values = sample_coil(system, coil, &grid, |k| bar.inc(k as u64));
+                        done.push((coil, values));
+                    }
+                })
+            })
+            .collect();
+        for w in workers {
+            if let Ok(done) = w.join() {
+                for (coil, values) in done {
+                    data[coil] = Some(values);
+                }
+            }
+        }
+    });
+    bar.finish_and_clear();
+    let data: Vec<Vec<f32>> = data
+        .into_iter()
+        .enumerate()
+        .map(|(i, d)| d.with_context(|| format!("sampling coil {i} failed")))
+        .collect::<anyhow::Result<_>>()?;
+    let coils = system
+        .coils
+        .iter()
+        .map(|c| CoilInfo {
+            name: c.name.clone(),
+            center_m: Some(c.center_m.into()),
+            axis: Some(c.axis.into_inner().into()),
+            total_turns: Some(c.total_turns()),
+        })
+        .collect();
+    Ok(CoilFieldMaps::from_parts(grid, coils, data)?)
+}
+
+/// Maximum and 99th-percentile relative errors of the interpolated maps.
+#[derive(Debug, Clone, Copy)]
+pub struct InterpolationError {
+    pub field_max: f64,
+    pub field_p99: f64,
+    pub gradient_max: f64,
+    pub gradient_p99: f64,
+}
+
+/// Compare `maps` with `direct` at `n` uniformly random points of the maps' grid box, every coil.
+pub fn interpolation_error<F: CoilField + ?Sized>(
+    direct: &F,
+    maps: &CoilFieldMaps,
+    n: usize,
+    seed: u64,
+) -> InterpolationError {
+    let g = *maps.grid();
+    let max = g.max_m();
+    let mut rng = SplitMix(seed);
+    let mut ef = Vec::with_capacity(n * maps.coils().len());
+    let mut eg = Vec::with_capacity(n * maps.coils().len());
+    for _ in 0..n {
+        let p = Vector3::from_fn(|k, _| g.origin_m[k] + rng.unit() * (max[k] - g.origin_m[k]));
+        for coil in 0..maps.coil_count().min(direct.coil_count()) {
+            let (bd, gd) = direct.field_and_gradient_per_amp(coil, &p);
+            let (bi, gi) = maps.field_and_gradient_per_amp(coil, &p);
+            ef.push((bi - bd).norm() / bd.norm());
+            eg.push((gi - gd).norm() / gd.norm());
+        }
+    }
+    let stats = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        let max = v.last().copied().unwrap_or(0.0);
+        let p99 = v
+            .get(((v.len() as f64) * 0.99) as usize)
+            .copied()
+            .unwrap_or(max);
+        (max, p99)
+    };
+    let (field_max, field_p99) = stats(&mut ef);
+    let (gradient_max, gradient_p99) = stats(&mut eg);
+    InterpolationError {
+        field_max,
+        field_p99,
+        gradient_max,
+        gradient_p99,
+    }
+}
+
+/// SplitMix64: small deterministic generator for verification points.
+struct SplitMix(u64);
+impl SplitMix {
+    fn unit(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        (z >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// JSON of `--export-loops`: every filament as a circular loop (SI units).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct LoopsExport {
+    pub units: String,
+    pub convention: String,
+    pub coils: Vec<CoilLoops>,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+pub struct CoilLoops {
+    pub name: String,
+    pub center_m: [f64; 3],
+    pub axis: [f64; 3],
+    pub turns_per_loop: f64,
+    pub loops: Vec<LoopExport>,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+pub struct LoopExport {
+    pub center_m: [f64; 3],
+    pub radius_m: f64,
+}
+
+pub fn export_loops(system: &CoilSystem) -> LoopsExport {
+    LoopsExport {
+        units: "SI: m, A (per ampere of coil current), T".into(),
+        convention: "positive current circulates right-handed about `axis`; each loop carries \
+                     turns_per_loop turns"
+            .into(),
+        coils: system
+            .coils
+            .iter()
+            .map(|c| {
+                let n = c.axis.into_inner();
+                CoilLoops {
+                    name: c.name.clone(),
+                    center_m: c.center_m.into(),
+                    axis: n.into(),
+                    turns_per_loop: c.turns_per_loop,
+                    loops: c
+                        .loops
+                        .iter()
+                        .map(|&(radius_m, offset)| LoopExport {
+                            center_m: (c.center_m + n * offset).into(),
+                            radius_m,
+                        })
+                        .collect(),
+                }
+            })
+            .collect(),
+    }
+}
+
+#[derive(Debug, Deserialize)]
+struct ProbeInput {
+    points_m: Vec<[f64; 3]>,
+}
+
+/// JSON of `--probe-out`: per point, per coil, the direct model's B̃ (T/A) and ∇B̃ (T/(A·m),
+/// row-major ∂B_i/∂x_j).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct ProbeOutput {
+    pub coils: Vec<String>,
+    pub points_m: Vec<[f64; 3]>,
+    pub field_t_per_a: Vec<Vec<[f64; 3]>>,
+    pub gradient_t_per_am: Vec<Vec<[f64; 9]>>,
+}
+
+pub fn probe(system: &CoilSystem, points: &[[f64; 3]]) -> anyhow::Result<ProbeOutput> {
+    let mut field = Vec::with_capacity(points.len());
+    let mut gradient = Vec::with_capacity(points.len());
+    for (k, p) in points.iter().enumerate() {
+        if p.iter().any(|v| !v.is_finite()) {
+            bail!("point {k} {p:?} is not finite");
+        }
+        let p = Vector3::from(*p);
+        let mut fs = Vec::with_capacity(system.len());
+        let mut gs = Vec::with_capacity(system.len());
+        for c in 0..system.len() {
+            let (b, g) = system.field_and_gradient_per_amp(c, &p);
+            fs.push(b.into());
+            gs.push(std::array::from_fn(|k| g[(k / 3, k % 3)]));
+        }
+        field.push(fs);
+        gradient.push(gs);
+    }
+    Ok(ProbeOutput {
+        coils: system.coils.iter().map(|c| c.name.clone()).collect(),
+        points_m: points.to_vec(),
+        field_t_per_a: field,
+        gradient_t_per_am: gradient,
+    })
+}
+
+fn write_json<T: Serialize>(path: &Path, value: &T) -> anyhow::Result<()> {
+    let text = serde_json::to_string(value)?;
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Python of the project venv: `$MILLINAV_VENV/bin/python`, else `~/.cache/millinav/venv/bin/python`.
+pub fn default_python() -> PathBuf {
+    let venv = std::env::var_os("MILLINAV_VENV")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            let home = std::env::var_os("HOME")
+                .map(PathBuf::from)
+                .unwrap_or_default();
+            home.join(".cache/millinav/venv")
+        });
+    venv.join("bin/python")
+}
+
+/// The cross-check script shipped next to this crate.
+pub fn magpylib_script() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("magpylib_check.py")
+}
+
+/// Why the magpylib check cannot run here, or `None` if it can.
+pub fn magpylib_unavailable(python: &Path) -> Option<String> {
+    match Command::new(python)
+        .args(["-c", "import magpylib, numpy"])
+        .output()
+    {
+        Err(e) => Some(format!("cannot run {}: {e}", python.display())),
+        Ok(o) if !o.status.success() => Some(format!(
+            "{} cannot import magpylib/numpy: {}",
+            python.display(),
+            String::from_utf8_lossy(&o.stderr)
+                .trim()
+                .lines()
+                .last()
+                .unwrap_or("")
+        )),
+        Ok(_) => None,
+    }
+}
+
+fn run_magpylib_check(args: &CoilsArgs) -> anyhow::Result<()> {
+    let python = args.python.clone().unwrap_or_else(default_python);
+    if let Some(why) = magpylib_unavailable(&python) {
+        println!(
+            "magpylib cross-check SKIPPED: {why} (install: {}/../pip install magpylib)",
+            python.parent().unwrap_or(Path::new(".")).display()
+        );
+        return Ok(());
+    }
+    let exe = std::env::current_exe().context("locating the fieldgen binary")?;
+    let status = Command::new(&python)
+        .arg(magpylib_script())
+        .arg("--fieldgen")
+        .arg(exe)
+        .status()
+        .with_context(|| format!("running {}", python.display()))?;
+    if !status.success() {
+        bail!("magpylib cross-check failed ({status})");
+    }
+    Ok(())
 }

@@ -1,0 +1,54 @@
+//! Runs tools/fieldgen/magpylib_check.py (closed-form model vs magpylib at random points) when
+//! `$MILLINAV_VENV/bin/python` (default ~/.cache/millinav/venv) has magpylib; otherwise prints
+//! loudly that the check was SKIPPED and why.
+
+use std::process::Command;
+
+use fieldgen::coils::{default_python, magpylib_script, magpylib_unavailable};
+
+#[test]
+fn direct_model_matches_magpylib() {
+    let python = default_python();
+    if let Some(why) = magpylib_unavailable(&python) {
+        eprintln!(
+            "\n*** SKIPPED magpylib cross-check: {why}.\n*** Install with: {}/pip install magpylib \
+             (scripts/setup.sh does this), or set MILLINAV_VENV.\n",
+            python.parent().map(|p| p.display().to_string()).unwrap_or_default()
+        );
+        println!("SKIPPED: magpylib cross-check (Python/magpylib absent: {why})");
+        return;
+    }
+    let out = Command::new(&python)
+        .arg(magpylib_script())
+        .args([
+            "--fieldgen",
+            env!("CARGO_BIN_EXE_fieldgen"),
+            "--points",
+            "300",
+        ])
+        .output()
+        .expect("running magpylib_check.py");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    println!("{stdout}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "magpylib_check.py failed");
+    assert!(stdout.contains("max relative error") && stdout.contains("PASS"));
+}
+
+#[test]
+fn export_and_probe_reject_bad_input() {
+    let dir = std::env::temp_dir().join(format!("fieldgen-probe-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let points = dir.join("points.json");
+    std::fs::write(&points, "{\"points\": 3}").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_fieldgen"))
+        .args(["coils", "--probe"])
+        .arg(&points)
+        .arg("--probe-out")
+        .arg(dir.join("out.json"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("points.json"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
