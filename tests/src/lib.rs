@@ -86,6 +86,16 @@ impl RunSet {
         }
     }
 
+    /// Asks the supervisor to stop (SIGTERM) and waits for it.
+    pub fn stop(&mut self, timeout: Duration) -> anyhow::Result<ExitStatus> {
+        let child = self.supervisor.as_ref().context("supervisor already reaped")?;
+        nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(child.id() as i32),
+            nix::sys::signal::Signal::SIGTERM,
+        )?;
+        self.wait(timeout)
+    }
+
     pub fn scenario(&self) -> anyhow::Result<Scenario> {
         Ok(Scenario::load(&self.scenario_path)?)
     }

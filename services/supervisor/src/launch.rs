@@ -55,7 +55,7 @@ impl Default for RestartPolicy {
             initial_backoff_ms: 100,
             max_backoff_ms: 5000,
             stable_after_ms: 5000,
-            startup_grace_ms: 5000,
+            startup_grace_ms: 3000,
         }
     }
 }

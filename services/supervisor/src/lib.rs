@@ -133,6 +133,20 @@ impl Supervisor {
             // Own process group: a terminal's Ctrl-C reaches only the supervisor, which then
             // stops the children in a safe order.
             .process_group(0);
+        // If the supervisor itself dies, every child gets SIGTERM: coilbus zeroes the coils on
+        // its way out (and the Teensy watchdog covers a coilbus that cannot), so a dead
+        // supervisor never leaves coils driven by an unsupervised set.
+        // SAFETY: only async-signal-safe calls between fork and exec (prctl, getppid).
+        unsafe {
+            command.pre_exec(|| {
+                nix::sys::prctl::set_pdeathsig(Signal::SIGTERM).map_err(std::io::Error::from)?;
+                // The supervisor may have died between fork and prctl.
+                if nix::unistd::getppid() == Pid::from_raw(1) {
+                    return Err(std::io::Error::other("supervisor exited during spawn"));
+                }
+                Ok(())
+            });
+        }
         let child = command
             .spawn()
             .with_context(|| format!("starting {name} ({})", binary.display()))?;

@@ -1,0 +1,252 @@
+//! Fault-injection suite: during one lockstep tracking run, SIGKILL and SIGSTOP (a hang) each of
+//! vision, flow, control and coilbus at seeded random times, then check the safety invariants
+//! and print a per-service table. A soak variant kills random services many times.
+//!
+//! Table: `cargo test --release --workspace --test fault_matrix -- --nocapture`
+//! Long soak (≥ 100 kills): `MILLINAV_SOAK_KILLS=120 cargo test --release --workspace --test fault_matrix soak -- --nocapture`
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use millinav_kit::clock::monotonic_ns;
+use millinav_tests::{scenario_text, RunSet, TeensyEvent};
+use nix::sys::signal::{kill, Signal};
+use nix::unistd::Pid;
+use shm_schemas::deadlines;
+
+/// Scheduling slack on top of a deadline on a loaded 2-core machine.
+const JITTER_MS: f64 = 40.0;
+/// Per-coil limit the Teensy must never see exceeded (fieldmaps' default coil limit).
+const MAX_CURRENT_A: f64 = 6.0 + 1e-3;
+
+/// A circle in the right atrium: the robot stays in the canal however long the run is.
+fn circle_scenario(duration_s: f64, seed: u64) -> String {
+    let points: Vec<[f64; 2]> = (0..=24)
+        .map(|i| {
+            let a = i as f64 / 24.0 * std::f64::consts::TAU;
+            [-16.0 + 5.0 * a.cos(), 10.0 + 5.0 * a.sin()]
+        })
+        .collect();
+    scenario_text(
+        duration_s,
+        &points,
+        1.0,
+        "[control]\ncontroller = \"pid\"\n[vision]\nlocalizer = \"classical\"\n",
+    )
+    .replace("seed = 3", &format!("seed = {seed}"))
+}
+
+/// Small deterministic generator for fault times and targets.
+struct Lcg(u64);
+impl Lcg {
+    fn next(&mut self) -> f64 {
+        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+#[derive(Debug, Clone)]
+struct FaultOutcome {
+    service: &'static str,
+    signal: &'static str,
+    detection_ms: f64,
+    safe_ms: f64,
+    resume_ms: f64,
+    /// Bound the time to safe state must meet for this service.
+    safe_bound_ms: f64,
+}
+
+fn ms(from: u64, to: u64) -> f64 {
+    (to as f64 - from as f64) * 1e-6
+}
+
+/// Waits until commands have flowed for a while (the loop is tracking).
+fn wait_tracking(run: &RunSet, after_ns: u64, commands: usize, timeout: Duration) -> bool {
+    let deadline = Instant::now() + timeout;
+    while Instant::now() < deadline {
+        let n = run
+            .teensy_events()
+            .unwrap_or_default()
+            .iter()
+            .filter(|e| e.monotonic_ns > after_ns && e.kind == "command" && e.max_abs_current_a > 0.0)
+            .count();
+        if n >= commands {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    false
+}
+
+/// Injects one fault and measures detection, time to safe state and time to resume.
+fn inject(run: &RunSet, service: &'static str, signal: Signal) -> FaultOutcome {
+    let pid = run.pid_of(service).expect("pid");
+    let injected = monotonic_ns();
+    kill(Pid::from_raw(pid), signal).expect("signal");
+    let detected_event = if signal == Signal::SIGKILL { "exit" } else { "heartbeat_missed" };
+    // Recovery: the restarted service is up and commands with current flow again.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let mut restart_ns = None;
+    while Instant::now() < deadline {
+        restart_ns = run
+            .supervisor_events()
+            .unwrap_or_default()
+            .iter()
+            .find(|e| e.service == service && e.event == "restart" && e.monotonic_ns > injected)
+            .map(|e| e.monotonic_ns);
+        if let Some(r) = restart_ns {
+            if wait_tracking(run, r, 5, Duration::from_secs(15)) {
+                break;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let restart_ns = restart_ns.unwrap_or_else(|| panic!("{service} was not restarted after {signal}"));
+    let events = run.supervisor_events().expect("events");
+    let detected = events
+        .iter()
+        .find(|e| e.service == service && e.event == detected_event && e.monotonic_ns > injected)
+        .unwrap_or_else(|| panic!("supervisor did not report {detected_event} for {service}"));
+    let teensy = run.teensy_events().expect("teensy");
+    let last_before = teensy
+        .iter()
+        .filter(|e| e.monotonic_ns <= injected)
+        .next_back()
+        .map(|e| e.monotonic_ns)
+        .unwrap_or(injected);
+    let safe = teensy
+        .iter()
+        .find(|e| e.monotonic_ns > injected && e.max_abs_current_a == 0.0)
+        .unwrap_or_else(|| panic!("coils never reached zero after {signal} of {service}"));
+    let resumed = teensy
+        .iter()
+        .find(|e| e.monotonic_ns > restart_ns && e.kind == "command" && e.max_abs_current_a > 0.0)
+        .expect("resume");
+    let safe_bound_ms = match service {
+        // Nothing writes to the Teensy any more: its own watchdog is the bound.
+        "coilbus" => deadlines::TEENSY_WATCHDOG.as_secs_f64() * 1e3,
+        _ => deadlines::COMMAND.as_secs_f64() * 1e3,
+    };
+    FaultOutcome {
+        service,
+        signal: if signal == Signal::SIGKILL { "SIGKILL" } else { "SIGSTOP" },
+        detection_ms: ms(injected, detected.monotonic_ns),
+        // From the last frame the Teensy got before the fault (the deadline's start).
+        safe_ms: ms(last_before.min(injected), safe.monotonic_ns),
+        resume_ms: ms(injected, resumed.monotonic_ns),
+        safe_bound_ms,
+    }
+}
+
+fn assert_invariants(run: &RunSet, teensy: &[TeensyEvent]) {
+    let mut last_seq = None;
+    for e in teensy.iter().filter(|e| e.kind == "command") {
+        if let (Some(prev), Some(seq)) = (last_seq, e.frame_seq) {
+            assert!(seq > prev, "stale command applied: frame {seq} after frame {prev}");
+        }
+        last_seq = e.frame_seq.or(last_seq);
+        assert!(
+            e.max_abs_current_a <= MAX_CURRENT_A,
+            "limit violated: {} A at the Teensy",
+            e.max_abs_current_a
+        );
+    }
+    let leaked = run.shm_segments();
+    assert!(leaked.is_empty(), "leaked shared-memory segments: {leaked:?}");
+}
+
+fn quantiles(values: &mut [f64]) -> (f64, f64) {
+    values.sort_by(|a, b| a.total_cmp(b));
+    (values[values.len() / 2], *values.last().unwrap_or(&f64::NAN))
+}
+
+#[test]
+fn every_service_killed_and_hung_in_turn() {
+    let mut run = RunSet::start("faultmatrix", &circle_scenario(40.0, 5)).expect("start");
+    assert!(wait_tracking(&run, 0, 100, Duration::from_secs(60)), "loop never started");
+    let mut rng = Lcg(0x5eed);
+    let mut plan: Vec<(&'static str, Signal)> = Vec::new();
+    for service in ["vision", "flow", "control", "coilbus"] {
+        plan.push((service, Signal::SIGKILL));
+        plan.push((service, Signal::SIGSTOP));
+    }
+    // Seeded shuffle and seeded pauses between faults.
+    for i in (1..plan.len()).rev() {
+        let j = (rng.next() * (i + 1) as f64) as usize;
+        plan.swap(i, j.min(i));
+    }
+    let mut outcomes = Vec::new();
+    for (service, signal) in plan {
+        std::thread::sleep(Duration::from_millis(300 + (rng.next() * 700.0) as u64));
+        let outcome = inject(&run, service, signal);
+        println!("{outcome:?}");
+        outcomes.push(outcome);
+    }
+    let status = run.wait(Duration::from_secs(240)).expect("run finishes");
+    assert!(status.success(), "supervisor exit {status}");
+    let events = run.supervisor_events().expect("events");
+    assert!(
+        events.iter().any(|e| e.service == "plant" && e.event == "run_complete"),
+        "the run did not complete"
+    );
+    let teensy = run.teensy_events().expect("teensy");
+    assert_invariants(&run, &teensy);
+
+    let mut by_service: BTreeMap<&str, Vec<&FaultOutcome>> = BTreeMap::new();
+    for o in &outcomes {
+        by_service.entry(o.service).or_default().push(o);
+    }
+    println!("\n| service | faults | detection ms (median / max) | time to safe ms (median / max) | bound ms | time to resume ms (median / max) |");
+    println!("|---|---|---|---|---|---|");
+    for (service, list) in &by_service {
+        let (d50, dmax) = quantiles(&mut list.iter().map(|o| o.detection_ms).collect::<Vec<_>>());
+        let (s50, smax) = quantiles(&mut list.iter().map(|o| o.safe_ms).collect::<Vec<_>>());
+        let (r50, rmax) = quantiles(&mut list.iter().map(|o| o.resume_ms).collect::<Vec<_>>());
+        let kinds: Vec<&str> = list.iter().map(|o| o.signal).collect();
+        println!(
+            "| {service} | {} ({}) | {d50:.0} / {dmax:.0} | {s50:.0} / {smax:.0} | {:.0} | {r50:.0} / {rmax:.0} |",
+            list.len(),
+            kinds.join(", "),
+            list[0].safe_bound_ms
+        );
+    }
+    for o in &outcomes {
+        assert!(
+            o.safe_ms <= o.safe_bound_ms + JITTER_MS,
+            "{} {}: coils at zero after {:.0} ms (bound {:.0} ms)",
+            o.service,
+            o.signal,
+            o.safe_ms,
+            o.safe_bound_ms
+        );
+    }
+}
+
+#[test]
+fn soak_random_kills() {
+    let kills: usize = std::env::var("MILLINAV_SOAK_KILLS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(8);
+    let duration = 30.0 + kills as f64 * 1.5;
+    let mut run = RunSet::start("soak", &circle_scenario(duration, 9)).expect("start");
+    assert!(wait_tracking(&run, 0, 100, Duration::from_secs(60)), "loop never started");
+    let mut rng = Lcg(kills as u64 + 17);
+    let services = ["vision", "flow", "control", "coilbus"];
+    let start = Instant::now();
+    for k in 0..kills {
+        let service = services[(rng.next() * services.len() as f64) as usize % services.len()];
+        let after = monotonic_ns();
+        inject(&run, service, Signal::SIGKILL);
+        assert!(
+            wait_tracking(&run, after, 3, Duration::from_secs(20)),
+            "no recovery after kill {k} of {service}"
+        );
+    }
+    println!("soak: {kills} kills survived in {:.1} s", start.elapsed().as_secs_f64());
+    // The supervisor must still be alive and stop cleanly on request.
+    let status = run.stop(Duration::from_secs(30)).expect("supervisor stops");
+    assert!(status.success(), "supervisor exit {status}");
+    let teensy = run.teensy_events().expect("teensy");
+    assert_invariants(&run, &teensy);
+}
