@@ -25,8 +25,14 @@ pub struct FlowConfig {
     pub map: Option<PathBuf>,
     /// Band of y (mm) where the inlet streams converge at the narrowing (paper: 0 to −10 mm).
     pub high_disturbance_y_mm: [f64; 2],
+    /// x extent (mm) of the high-disturbance zone: the band stops short of the outflow
+    /// channel (x ≈ 22–36 mm), which crosses the same y band.
+    pub high_disturbance_x_mm: [f64; 2],
     /// Band of y (mm) of the recirculation zone (paper: 10 to −5 mm).
     pub recirculation_y_mm: [f64; 2],
+    /// x extent (mm) of the recirculation zone (right atrium / valve side, not the outflow
+    /// channel).
+    pub recirculation_x_mm: [f64; 2],
     /// Spacing of the arrows logged once to the recording (mm).
     pub arrow_spacing_mm: f64,
 }
@@ -37,6 +43,8 @@ impl Default for FlowConfig {
             map: None,
             high_disturbance_y_mm: [-10.0, 0.0],
             recirculation_y_mm: [-5.0, 10.0],
+            high_disturbance_x_mm: [-46.0, 20.0],
+            recirculation_x_mm: [-46.0, 20.0],
             arrow_spacing_mm: 4.0,
         }
     }
@@ -65,17 +73,29 @@ impl FlowEstimator {
         }
         let p = Vector2::new(pose.position_m[0], pose.position_m[1]);
         let v = self.map.sample(&p);
-        let y_mm = p.y * 1e3;
-        let within = |band: [f64; 2]| y_mm >= band[0].min(band[1]) && y_mm <= band[0].max(band[1]);
+        let (x_mm, y_mm) = (p.x * 1e3, p.y * 1e3);
+        let between =
+            |v: f64, band: [f64; 2]| v >= band[0].min(band[1]) && v <= band[0].max(band[1]);
+        let within = |ys: [f64; 2], xs: [f64; 2]| between(y_mm, ys) && between(x_mm, xs);
         let moving = self.map.peak_speed() > 0.0;
         let mut flags = 0;
         if !self.map.covers(&p) {
             flags |= zone::OUTSIDE_MAP;
         }
-        if moving && within(self.config.high_disturbance_y_mm) {
+        if moving
+            && within(
+                self.config.high_disturbance_y_mm,
+                self.config.high_disturbance_x_mm,
+            )
+        {
             flags |= zone::HIGH_DISTURBANCE;
         }
-        if moving && within(self.config.recirculation_y_mm) {
+        if moving
+            && within(
+                self.config.recirculation_y_mm,
+                self.config.recirculation_x_mm,
+            )
+        {
             flags |= zone::RECIRCULATION;
         }
         estimate.velocity_mps = [v.x, v.y];
@@ -218,5 +238,31 @@ mod tests {
         assert!(e.valid);
         assert_eq!(e.frame_seq, 7);
         assert_eq!(e.zone_flags, 0);
+    }
+
+    #[test]
+    fn zones_stop_short_of_the_outflow_channel() {
+        // A uniform non-zero map so zone flags are active.
+        let mut map = FlowMap::zero();
+        map.velocity_mps
+            .iter_mut()
+            .for_each(|v| *v = Vector2::new(0.01, 0.0));
+        let est = FlowEstimator::new(map, FlowConfig::default());
+        let flags = |x_mm: f64, y_mm: f64| {
+            est.estimate(&Pose {
+                valid: true,
+                position_m: [x_mm * 1e-3, y_mm * 1e-3],
+                ..Default::default()
+            })
+            .zone_flags
+        };
+        // Lower right atrium / valve: both zones.
+        let both = zone::HIGH_DISTURBANCE | zone::RECIRCULATION;
+        assert_eq!(flags(-15.0, -3.0) & both, both);
+        // Tricuspid neck below the recirculation band: high disturbance only.
+        assert_eq!(flags(-5.0, -8.0) & both, zone::HIGH_DISTURBANCE);
+        // Outflow channel at the same heights: neither.
+        assert_eq!(flags(29.0, -3.0) & both, 0);
+        assert_eq!(flags(28.0, 5.0) & both, 0);
     }
 }

@@ -1,9 +1,1012 @@
-//! `fieldgen cfd` (being written).
+//! `fieldgen cfd`: steady laminar flow in the phantom → in-plane flow maps at the control plane.
+//!
+//! # Model (depth-averaged 2D, documented approximation)
+//!
+//! The paper solves the 3D phantom in ANSYS Fluent and keeps (Vx, Vy) on the plane z = 8 mm
+//! above the inlet centreline. Here the phantom is the top-view canal mask (parametric phantom
+//! or a hand-outlined PNG) treated as a chamber of uniform effective depth `H`:
+//!
+//! - depth-averaged incompressible Navier–Stokes with a Hele-Shaw wall-friction term:
+//!   ∂ū/∂t + (ū·∇)ū = −∇p/ρ + ν∇²ū − (12ν/H²) ū (Poiseuille profile across the depth);
+//! - solved to steady state with the D2Q9 TRT lattice Boltzmann method of [`crate::lbm`];
+//! - each inlet carries Q/2 (the paper gives 0.212 / 0.295 m/s "at each inlet" for 180 / 250
+//!   mL/min through D = 3 mm tubes, i.e. Q/2 per inlet) as a fully developed parabolic profile
+//!   across the inlet opening where the tube enters the camera view (the 85 mm tubes are
+//!   long enough for full development, paper); the outlet is a pressure outlet; all canal walls
+//!   are no-slip;
+//! - control plane: with a Poiseuille profile across the depth, the mid-depth velocity is
+//!   1.5 × the depth average; the control plane is identified with mid-depth, so the map is
+//!   1.5 · ū. `H` is the one calibration constant: `H = 12 mm` makes the peak in-chamber speed
+//!   at 250 mL/min, 4.3 cP come out at ≈ 10 cm/s (the paper's CFD). The other three
+//!   conditions use the same `H`: their peaks are predictions, not fits.
+//!
+//! The port tubes' stretches inside the view (narrower than the robot, so never navigated)
+//! are solved but written as zero, so the map's peak is the in-phantom peak (the plant scales
+//! its disturbance model by it); in the 2D model the outlet slot would otherwise be the
+//! fastest place (it carries Q through a 4.2 mm slot).
+//!
+//! What this does not capture: 3D jet spreading from the round inlet tubes toward the control
+//! plane, vertical secondary flows, the real (non-uniform) depth of the phantom.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+use std::time::Instant;
+
+use anyhow::Context;
+use fieldmaps::flowmap::FlowMap;
+use fieldmaps::mask::CanalMask;
+use fieldmaps::phantom::{
+    ImageGeometry, Phantom, HIGH_DISTURBANCE_Y_RANGE_M, RECIRCULATION_Y_RANGE_M,
+};
+use nalgebra::Vector2;
+use thiserror::Error;
+
+use crate::lbm::{Convergence, Lattice, LbmError, LbmParams, Node};
+
+/// Density of the glycerin–water mixtures (paper), kg/m³.
+pub const DENSITY_KG_M3: f64 = 1113.0;
+/// Calibrated effective chamber depth (see the module docs), m.
+pub const EFFECTIVE_DEPTH_M: f64 = 0.012;
+/// Control-plane velocity / depth-averaged velocity (mid-depth of a Poiseuille profile).
+pub const PLANE_FACTOR: f64 = 1.5;
+/// Map nodes closer than this to the wall are left out of the "in-chamber" statistics, which
+/// excludes the inlet (3 mm) and outlet (4.2 mm) tubes, m.
+pub const CHAMBER_CLEARANCE_M: f64 = 3.0e-3;
+/// x (m) beyond which the outflow channel starts; the paper's zones lie left of it.
+pub const ZONE_X_MAX_M: f64 = 0.020;
+
+#[derive(Debug, Error)]
+pub enum CfdError {
+    #[error(transparent)]
+    Lbm(#[from] LbmError),
+    #[error("mask opening at ({x_mm:.1}, {y_mm:.1}) mm on the image edge matches no port; ports: {ports}")]
+    UnmatchedOpening { x_mm: f64, y_mm: f64, ports: String },
+    #[error("port {0} has no opening on the image edge of the mask")]
+    MissingPort(String),
+    #[error("port {0} matches more than one opening on the image edge")]
+    AmbiguousPort(String),
+    #[error("lattice too coarse for this condition: relaxation time {tau:.4} < 0.51; use a smaller --dx-mm")]
+    TooCoarse { tau: f64 },
+    #[error("bad parameter: {0}")]
+    BadParameter(String),
+}
+
+/// A flow condition of the paper's experiment matrix.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Condition {
+    /// File stem, e.g. `q180_mu4p3`.
+    pub name: String,
+    /// Total pump flow, m³/s (split equally between the two inlets).
+    pub flow_m3_s: f64,
+    /// Dynamic viscosity, Pa·s.
+    pub viscosity_pa_s: f64,
+}
+
+impl Condition {
+    pub fn new(flow_ml_min: f64, viscosity_cp: f64) -> Self {
+        let cp = format!("{viscosity_cp}").replace('.', "p");
+        Self {
+            name: format!("q{flow_ml_min}_mu{cp}"),
+            flow_m3_s: flow_ml_min * 1e-6 / 60.0,
+            viscosity_pa_s: viscosity_cp * 1e-3,
+        }
+    }
+
+    pub fn flow_ml_min(&self) -> f64 {
+        self.flow_m3_s * 60.0e6
+    }
+
+    pub fn viscosity_cp(&self) -> f64 {
+        self.viscosity_pa_s * 1e3
+    }
+
+    /// The paper's four conditions: 180 / 250 mL/min at 4.3 / 20 cP.
+    pub fn paper() -> Vec<Self> {
+        let mut v = Vec::new();
+        for q in [180.0, 250.0] {
+            for mu in [4.3, 20.0] {
+                v.push(Self::new(q, mu));
+            }
+        }
+        v
+    }
+}
+
+/// Numerical and model settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CfdSettings {
+    /// Lattice spacing, m.
+    pub dx_m: f64,
+    /// Effective depth H of the depth-averaged model, m.
+    pub depth_m: f64,
+    pub density_kg_m3: f64,
+    /// Lattice velocity of the fastest inlet node (Mach number control).
+    pub lattice_velocity: f64,
+    /// Steady-state tolerance on the relative velocity change per step.
+    pub tolerance: f64,
+    pub max_steps: usize,
+    pub check_every: usize,
+    /// Output grid spacing, m.
+    pub out_spacing_m: f64,
+}
+
+impl Default for CfdSettings {
+    fn default() -> Self {
+        Self {
+            dx_m: 0.3e-3,
+            depth_m: EFFECTIVE_DEPTH_M,
+            density_kg_m3: DENSITY_KG_M3,
+            lattice_velocity: 0.12,
+            tolerance: 1e-7,
+            max_steps: 300_000,
+            check_every: 200,
+            out_spacing_m: 0.5e-3,
+        }
+    }
+}
+
+/// What a port is for the solver.
+#[derive(Debug, Clone, PartialEq)]
+pub enum PortKind {
+    /// Velocity inlet carrying this fraction of the total flow.
+    Inlet { flow_fraction: f64 },
+    /// Pressure outlet.
+    Outlet,
+}
+
+/// A port: where its tube crosses the image edge.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Port {
+    pub name: String,
+    pub kind: PortKind,
+    pub edge_point_m: Vector2<f64>,
+    /// The port tube inside the view: (mouth, unit axis pointing away from the chamber,
+    /// radius). Map nodes in it are written as zero (see [`solve`]).
+    pub tube: Option<(Vector2<f64>, Vector2<f64>, f64)>,
+}
+
+impl Port {
+    /// Whether `p` lies in this port's tube (beyond the mouth, within radius + 0.5 mm).
+    pub fn in_tube(&self, p: &Vector2<f64>) -> bool {
+        self.tube.is_some_and(|(mouth, axis, r)| {
+            let d = p - mouth;
+            let s = d.dot(&axis);
+            s > 0.0 && (d - axis * s).norm() < r + 0.5e-3
+        })
+    }
+}
+
+/// Where the ray p + t·d (t ≥ 0) leaves the rectangle [x0, x1] × [y0, y1].
+fn exit_point(
+    p: Vector2<f64>,
+    d: Vector2<f64>,
+    lo: Vector2<f64>,
+    hi: Vector2<f64>,
+) -> Vector2<f64> {
+    let mut t = f64::INFINITY;
+    for k in 0..2 {
+        if d[k] > 1e-12 {
+            t = t.min((hi[k] - p[k]) / d[k]);
+        } else if d[k] < -1e-12 {
+            t = t.min((lo[k] - p[k]) / d[k]);
+        }
+    }
+    if t.is_finite() {
+        p + d * t
+    } else {
+        p
+    }
+}
+
+/// The view rectangle of an image geometry, m.
+fn view_rect(g: &ImageGeometry) -> (Vector2<f64>, Vector2<f64>) {
+    let lo = Vector2::new(
+        g.origin_x_mm,
+        g.origin_y_mm - f64::from(g.height_px) * g.mm_per_px,
+    ) * 1e-3;
+    let hi = Vector2::new(
+        g.origin_x_mm + f64::from(g.width_px) * g.mm_per_px,
+        g.origin_y_mm,
+    ) * 1e-3;
+    (lo, hi)
+}
+
+/// The phantom's ports on the edge of the view: inlets share the flow equally.
+pub fn phantom_ports(phantom: &Phantom, geometry: &ImageGeometry) -> Vec<Port> {
+    let (lo, hi) = view_rect(geometry);
+    let inlets = phantom.inlets();
+    let n = inlets.len().max(1) as f64;
+    let mut ports: Vec<Port> = inlets
+        .iter()
+        .map(|inlet| Port {
+            name: inlet.name.clone(),
+            kind: PortKind::Inlet {
+                flow_fraction: 1.0 / n,
+            },
+            edge_point_m: exit_point(inlet.mouth_m, -inlet.direction.into_inner(), lo, hi),
+            tube: Some((
+                inlet.mouth_m,
+                -inlet.direction.into_inner(),
+                0.5 * inlet.diameter_m,
+            )),
+        })
+        .collect();
+    let outlet = phantom.outlet();
+    ports.push(Port {
+        name: outlet.name,
+        kind: PortKind::Outlet,
+        edge_point_m: exit_point(outlet.mouth_m, outlet.direction.into_inner(), lo, hi),
+        tube: Some((
+            outlet.mouth_m,
+            outlet.direction.into_inner(),
+            0.5 * outlet.diameter_m,
+        )),
+    });
+    ports
+}
+
+/// A run of fluid cells along one side of the lattice.
+#[derive(Debug, Clone)]
+struct Opening {
+    /// Interior cells of the run, in order along the side.
+    cells: Vec<(i64, i64)>,
+    /// Ghost cell outside each interior cell.
+    ghosts: Vec<(i64, i64)>,
+    /// Inward unit normal.
+    inward: [f64; 2],
+    centre_m: Vector2<f64>,
+}
+
+/// Lattice laid over the mask's image: cell centres, mm ↔ index.
+#[derive(Debug, Clone, Copy)]
+struct Grid {
+    nx: usize,
+    ny: usize,
+    dx: f64,
+    /// Lower-left corner of the lattice, m.
+    x0: f64,
+    y0: f64,
+}
+
+impl Grid {
+    fn centre(&self, i: i64, j: i64) -> Vector2<f64> {
+        Vector2::new(
+            self.x0 + (i as f64 + 0.5) * self.dx,
+            self.y0 + (j as f64 + 0.5) * self.dx,
+        )
+    }
+}
+
+/// Cells along one side of the lattice, the ghost offset, and the inward normal.
+type Side = (Vec<(i64, i64)>, (i64, i64), [f64; 2]);
+
+fn find_openings(fluid: &[bool], grid: &Grid) -> Vec<Opening> {
+    let (nx, ny) = (grid.nx as i64, grid.ny as i64);
+    let is_fluid = |i: i64, j: i64| fluid[(j * nx + i) as usize];
+    // (cells along the side, ghost offset, inward normal)
+    let sides: [Side; 4] = [
+        ((0..nx).map(|i| (i, 0)).collect(), (0, -1), [0.0, 1.0]),
+        ((0..nx).map(|i| (i, ny - 1)).collect(), (0, 1), [0.0, -1.0]),
+        ((0..ny).map(|j| (0, j)).collect(), (-1, 0), [1.0, 0.0]),
+        ((0..ny).map(|j| (nx - 1, j)).collect(), (1, 0), [-1.0, 0.0]),
+    ];
+    let mut openings = Vec::new();
+    for (cells, off, inward) in sides {
+        let mut run: Vec<(i64, i64)> = Vec::new();
+        let flush = |run: &mut Vec<(i64, i64)>, out: &mut Vec<Opening>| {
+            if run.is_empty() {
+                return;
+            }
+            let centre = run
+                .iter()
+                .map(|&(i, j)| grid.centre(i, j))
+                .sum::<Vector2<f64>>()
+                / run.len() as f64;
+            let ghosts = run.iter().map(|&(i, j)| (i + off.0, j + off.1)).collect();
+            out.push(Opening {
+                cells: std::mem::take(run),
+                ghosts,
+                inward,
+                centre_m: centre,
+            });
+        };
+        for &(i, j) in &cells {
+            if is_fluid(i, j) {
+                run.push((i, j));
+            } else {
+                flush(&mut run, &mut openings);
+            }
+        }
+        flush(&mut run, &mut openings);
+    }
+    openings
+}
+
+/// Diagnostics of one solve.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CfdStats {
+    pub condition: Condition,
+    pub convergence: Convergence,
+    pub lattice: (usize, usize),
+    pub fluid_cells: usize,
+    pub dx_m: f64,
+    pub dt_s: f64,
+    pub tau: f64,
+    /// Mean inlet velocity (depth-averaged, each inlet), m/s.
+    pub inlet_mean_mps: f64,
+    /// Paper's mean velocity in the round D = 3 mm tube, Q/2 / (π D²/4), m/s.
+    pub tube_mean_mps: f64,
+    /// Reynolds number of the paper's tube flow, ρ U D / μ.
+    pub tube_reynolds: f64,
+    /// Total inflow and outflow of the 2D model (× H), m³/s.
+    pub inflow_m3_s: f64,
+    pub outflow_m3_s: f64,
+    /// Peak control-plane speed anywhere on the map, and where.
+    pub peak_mps: f64,
+    pub peak_at_m: Vector2<f64>,
+    /// Peak control-plane speed in the chamber (clearance > 3 mm: the inlet and outlet tubes excluded).
+    pub chamber_peak_mps: f64,
+    pub chamber_peak_at_m: Vector2<f64>,
+    /// Mean speed in the high-disturbance band (x < 20 mm) / mean speed in the chamber.
+    pub disturbance_mean_ratio: f64,
+    /// Closed-streamline (recirculating) sample points (1 mm spacing in the chamber): count,
+    /// fraction of all chamber samples, fraction of the samples inside the paper's
+    /// recirculation band (x < 20 mm) and fraction of those outside it.
+    pub recirculating_points: usize,
+    pub recirculating_fraction: f64,
+    pub recirculating_in_band: f64,
+    pub recirculating_outside_band: f64,
+    /// y extent (10th–90th percentile) of the recirculating points, m.
+    pub recirculating_y_m: (f64, f64),
+    pub seconds: f64,
+}
+
+impl CfdStats {
+    pub fn mass_imbalance(&self) -> f64 {
+        (self.inflow_m3_s - self.outflow_m3_s).abs() / self.inflow_m3_s.max(f64::MIN_POSITIVE)
+    }
+
+    pub fn summary(&self) -> String {
+        let c = &self.condition;
+        format!(
+            "{name}: Q = {q:.0} mL/min, mu = {mu:.1} cP | tube U = {tu:.3} m/s (Re {re:.0}) | lattice {nx}x{ny} dx {dx:.3} mm, {cells} fluid cells, tau {tau:.3}, dt {dt:.2e} s | {steps} steps, residual {res:.1e}{conv} | mass imbalance {mi:.2e} | peak {pk:.1} mm/s at ({px:.1}, {py:.1}) mm, chamber peak {cp:.1} mm/s at ({cx:.1}, {cy:.1}) mm | high-disturbance band mean speed x{hd:.2} the chamber mean | recirculating samples: {rn} ({rf:.0} % of chamber; {rb:.0} % of the band's, {ro:.0} % elsewhere), y {ry0:.1}..{ry1:.1} mm | {secs:.1} s",
+            name = c.name,
+            q = c.flow_ml_min(),
+            mu = c.viscosity_cp(),
+            tu = self.tube_mean_mps,
+            re = self.tube_reynolds,
+            nx = self.lattice.0,
+            ny = self.lattice.1,
+            dx = self.dx_m * 1e3,
+            cells = self.fluid_cells,
+            tau = self.tau,
+            dt = self.dt_s,
+            steps = self.convergence.steps,
+            res = self.convergence.residual,
+            conv = if self.convergence.converged { "" } else { " (NOT converged)" },
+            mi = self.mass_imbalance(),
+            pk = self.peak_mps * 1e3,
+            px = self.peak_at_m.x * 1e3,
+            py = self.peak_at_m.y * 1e3,
+            cp = self.chamber_peak_mps * 1e3,
+            cx = self.chamber_peak_at_m.x * 1e3,
+            cy = self.chamber_peak_at_m.y * 1e3,
+            hd = self.disturbance_mean_ratio,
+            rn = self.recirculating_points,
+            rf = self.recirculating_fraction * 100.0,
+            rb = self.recirculating_in_band * 100.0,
+            ro = self.recirculating_outside_band * 100.0,
+            ry0 = self.recirculating_y_m.0 * 1e3,
+            ry1 = self.recirculating_y_m.1 * 1e3,
+            secs = self.seconds,
+        )
+    }
+}
+
+/// Solves one condition on `mask` with `ports`; `progress(steps, residual)` is called at each
+/// convergence check.
+pub fn solve(
+    mask: &CanalMask,
+    ports: &[Port],
+    condition: &Condition,
+    settings: &CfdSettings,
+    progress: impl FnMut(usize, f64),
+) -> Result<(FlowMap, CfdStats), CfdError> {
+    let started = Instant::now();
+    let bad = |m: &str| Err(CfdError::BadParameter(m.to_string()));
+    if !(settings.dx_m > 0.0 && settings.dx_m.is_finite()) {
+        return bad("dx must be > 0");
+    }
+    if !(settings.depth_m > 0.0 && settings.depth_m.is_finite()) {
+        return bad("depth must be > 0");
+    }
+    if !(settings.out_spacing_m > 0.0 && settings.out_spacing_m.is_finite()) {
+        return bad("output spacing must be > 0");
+    }
+    if !(condition.flow_m3_s > 0.0 && condition.flow_m3_s.is_finite()) {
+        return bad("flow must be > 0");
+    }
+    if !(condition.viscosity_pa_s > 0.0 && condition.viscosity_pa_s.is_finite()) {
+        return bad("viscosity must be > 0");
+    }
+    if !(settings.lattice_velocity > 0.0 && settings.lattice_velocity <= 0.2) {
+        return bad("lattice velocity must be in (0, 0.2]");
+    }
+    let geom = mask.geometry();
+    let (lo, hi) = view_rect(geom);
+    let nx = ((hi.x - lo.x) / settings.dx_m).round().max(2.0) as usize;
+    let ny = ((hi.y - lo.y) / settings.dx_m).round().max(2.0) as usize;
+    if nx * ny > 16_000_000 {
+        return bad("lattice larger than 16 M cells; use a larger --dx-mm");
+    }
+    let dx = (hi.x - lo.x) / nx as f64;
+    let grid = Grid {
+        nx,
+        ny,
+        dx,
+        x0: lo.x,
+        y0: lo.y,
+    };
+    let fluid: Vec<bool> = (0..nx * ny)
+        .map(|k| mask.contains(&grid.centre((k % nx) as i64, (k / nx) as i64)))
+        .collect();
+
+    // Match openings to ports.
+    let openings = find_openings(&fluid, &grid);
+    let port_names = ports
+        .iter()
+        .map(|p| {
+            format!(
+                "{} at ({:.1}, {:.1}) mm",
+                p.name,
+                p.edge_point_m.x * 1e3,
+                p.edge_point_m.y * 1e3
+            )
+        })
+        .collect::<Vec<_>>()
+        .join(", ");
+    let mut assigned: Vec<Option<usize>> = vec![None; ports.len()];
+    let mut opening_port = Vec::with_capacity(openings.len());
+    for (k, op) in openings.iter().enumerate() {
+        let best = ports
+            .iter()
+            .enumerate()
+            .map(|(pi, p)| (pi, (p.edge_point_m - op.centre_m).norm()))
+            .filter(|&(_, d)| d < 4e-3)
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        let Some((pi, _)) = best else {
+            return Err(CfdError::UnmatchedOpening {
+                x_mm: op.centre_m.x * 1e3,
+                y_mm: op.centre_m.y * 1e3,
+                ports: port_names,
+            });
+        };
+        if assigned[pi].is_some() {
+            return Err(CfdError::AmbiguousPort(ports[pi].name.clone()));
+        }
+        assigned[pi] = Some(k);
+        opening_port.push(pi);
+    }
+    if let Some(pi) = assigned.iter().position(Option::is_none) {
+        return Err(CfdError::MissingPort(ports[pi].name.clone()));
+    }
+
+    // Physical inlet velocities: parabolic across each opening, flux = fraction · Q / H.
+    let h = settings.depth_m;
+    let nu = condition.viscosity_pa_s / settings.density_kg_m3;
+    let mut inlet_profiles: Vec<(usize, Vec<f64>)> = Vec::new();
+    let mut inlet_mean = 0.0f64;
+    let mut peak_in = 0.0f64;
+    for (k, op) in openings.iter().enumerate() {
+        if let PortKind::Inlet { flow_fraction } = ports[opening_port[k]].kind {
+            let n = op.cells.len();
+            let width = n as f64 * dx;
+            let mean = flow_fraction * condition.flow_m3_s / (width * h);
+            let shape: Vec<f64> = (0..n)
+                .map(|c| {
+                    let s = (c as f64 + 0.5) / n as f64;
+                    4.0 * s * (1.0 - s)
+                })
+                .collect();
+            let sum: f64 = shape.iter().sum();
+            let profile: Vec<f64> = shape.iter().map(|s| s * mean * n as f64 / sum).collect();
+            peak_in = profile.iter().copied().fold(peak_in, f64::max);
+            inlet_mean = inlet_mean.max(mean);
+            inlet_profiles.push((k, profile));
+        }
+    }
+    if peak_in <= 0.0 {
+        return bad("no inlet");
+    }
+    // Time step from the lattice Mach number; keep τ ≤ 1.5.
+    let mut dt = settings.lattice_velocity * dx / peak_in;
+    let tau_max = 1.5;
+    if 3.0 * nu * dt / (dx * dx) + 0.5 > tau_max {
+        dt = (tau_max - 0.5) / 3.0 * dx * dx / nu;
+    }
+    let nu_lat = nu * dt / (dx * dx);
+    let tau = 3.0 * nu_lat + 0.5;
+    if tau < 0.51 {
+        return Err(CfdError::TooCoarse { tau });
+    }
+    let to_lattice = dt / dx;
+    let friction = 12.0 * nu / (h * h) * dt;
+
+    let mut lat = Lattice::new(
+        nx,
+        ny,
+        LbmParams {
+            nu: nu_lat,
+            friction,
+            body_force: [0.0; 2],
+        },
+    )?;
+    for (k, f) in fluid.iter().enumerate() {
+        if !f {
+            lat.set((k % nx) as i64, (k / nx) as i64, Node::Wall)?;
+        }
+    }
+    for (k, profile) in &inlet_profiles {
+        let op = &openings[*k];
+        // The links at the ends of an opening (next to the wall) carry less than Σu; rescale
+        // so the mass actually injected is the inlet's flow.
+        let target: f64 = profile.iter().sum::<f64>() * to_lattice;
+        let mut gain = 1.0;
+        for _ in 0..2 {
+            for (&(gi, gj), &u) in op.ghosts.iter().zip(profile) {
+                let s = u * to_lattice * gain;
+                lat.set(gi, gj, Node::Moving([op.inward[0] * s, op.inward[1] * s]))?;
+            }
+            let injected = lat.injected_flux(&op.ghosts);
+            if injected > 0.0 {
+                gain *= target / injected;
+            }
+        }
+    }
+    for (k, op) in openings.iter().enumerate() {
+        if ports[opening_port[k]].kind == PortKind::Outlet {
+            for &(gi, gj) in &op.ghosts {
+                lat.set(gi, gj, Node::Pressure)?;
+            }
+        }
+    }
+    let convergence = lat.run(
+        settings.max_steps,
+        settings.tolerance,
+        settings.check_every,
+        progress,
+    )?;
+
+    // Fluxes through the ports (2D flux × H).
+    let to_phys = dx / dt;
+    let mut inflow = 0.0;
+    let mut outflow = 0.0;
+    for (k, op) in openings.iter().enumerate() {
+        let flux: f64 = op
+            .cells
+            .iter()
+            .map(|&(i, j)| {
+                let u = lat.velocity(i, j);
+                (u[0] * op.inward[0] + u[1] * op.inward[1]) * to_phys * dx * h
+            })
+            .sum();
+        match ports[opening_port[k]].kind {
+            PortKind::Inlet { .. } => inflow += flux,
+            PortKind::Outlet => outflow -= flux,
+        }
+    }
+
+    // Control-plane map: bilinear between cell centres (non-fluid cells are at rest), zero
+    // outside the canal.
+    let sp = settings.out_spacing_m;
+    let mnx = ((hi.x - lo.x) / sp).floor() as usize + 1;
+    let mny = ((hi.y - lo.y) / sp).floor() as usize + 1;
+    let origin = Vector2::new(
+        0.5 * (lo.x + hi.x) - 0.5 * (mnx - 1) as f64 * sp,
+        0.5 * (lo.y + hi.y) - 0.5 * (mny - 1) as f64 * sp,
+    );
+    let scale = to_phys * PLANE_FACTOR;
+    let mut velocity = Vec::with_capacity(mnx * mny);
+    for j in 0..mny {
+        for i in 0..mnx {
+            let p = origin + Vector2::new(i as f64, j as f64) * sp;
+            if !mask.contains(&p) || ports.iter().any(|port| port.in_tube(&p)) {
+                velocity.push(Vector2::zeros());
+                continue;
+            }
+            let fx = (p.x - grid.x0) / dx - 0.5;
+            let fy = (p.y - grid.y0) / dx - 0.5;
+            let (i0, j0) = (fx.floor() as i64, fy.floor() as i64);
+            let (tx, ty) = (fx - i0 as f64, fy - j0 as f64);
+            let mut v = Vector2::zeros();
+            for (di, dj, w) in [
+                (0, 0, (1.0 - tx) * (1.0 - ty)),
+                (1, 0, tx * (1.0 - ty)),
+                (0, 1, (1.0 - tx) * ty),
+                (1, 1, tx * ty),
+            ] {
+                let u = lat.velocity(i0 + di, j0 + dj);
+                v += Vector2::new(u[0], u[1]) * w;
+            }
+            velocity.push(v * scale);
+        }
+    }
+    let map = FlowMap {
+        nx: mnx,
+        ny: mny,
+        origin_m: origin,
+        spacing_m: sp,
+        velocity_mps: velocity,
+    };
+
+    let tube_area = std::f64::consts::PI * 0.25 * fieldmaps::phantom::INLET_DIAMETER_M.powi(2);
+    let tube_mean = 0.5 * condition.flow_m3_s / tube_area;
+    let mut stats = CfdStats {
+        condition: condition.clone(),
+        convergence,
+        lattice: (nx, ny),
+        fluid_cells: lat.fluid_cells(),
+        dx_m: dx,
+        dt_s: dt,
+        tau,
+        inlet_mean_mps: inlet_mean,
+        tube_mean_mps: tube_mean,
+        tube_reynolds: settings.density_kg_m3 * tube_mean * fieldmaps::phantom::INLET_DIAMETER_M
+            / condition.viscosity_pa_s,
+        inflow_m3_s: inflow,
+        outflow_m3_s: outflow,
+        peak_mps: 0.0,
+        peak_at_m: Vector2::zeros(),
+        chamber_peak_mps: 0.0,
+        chamber_peak_at_m: Vector2::zeros(),
+        disturbance_mean_ratio: 0.0,
+        recirculating_points: 0,
+        recirculating_fraction: 0.0,
+        recirculating_in_band: 0.0,
+        recirculating_outside_band: 0.0,
+        recirculating_y_m: (0.0, 0.0),
+        seconds: 0.0,
+    };
+    analyse(&map, mask, ports, &mut stats);
+    stats.seconds = started.elapsed().as_secs_f64();
+    Ok((map, stats))
+}
+
+/// Peak speeds, the high-disturbance band's mean speed, and recirculation found by tracing
+/// streamlines: a sample point is recirculating when its streamline neither reaches the outlet
+/// nor stalls within 400 mm of path but loops (returns within 0.5 mm of where it started).
+fn analyse(map: &FlowMap, mask: &CanalMask, ports: &[Port], stats: &mut CfdStats) {
+    let clearance = mask.clearance_map();
+    let g = *mask.geometry();
+    let clear_at = |p: &Vector2<f64>| {
+        g.pixel_of(p)
+            .map(|(c, r)| clearance[r as usize * g.width_px as usize + c as usize])
+            .unwrap_or(0.0)
+    };
+    let in_zone =
+        |p: &Vector2<f64>, band: (f64, f64)| p.x < ZONE_X_MAX_M && p.y >= band.0 && p.y <= band.1;
+    let (mut band_sum, mut band_n, mut ch_sum, mut ch_n) = (0.0, 0usize, 0.0, 0usize);
+    let mut chamber_points = Vec::new();
+    for j in 0..map.ny {
+        for i in 0..map.nx {
+            let p = map.origin_m + Vector2::new(i as f64, j as f64) * map.spacing_m;
+            let v = map.velocity_mps[j * map.nx + i];
+            let s = v.norm();
+            if s > stats.peak_mps {
+                stats.peak_mps = s;
+                stats.peak_at_m = p;
+            }
+            if !mask.contains(&p) || clear_at(&p) <= CHAMBER_CLEARANCE_M {
+                continue;
+            }
+            if s > stats.chamber_peak_mps {
+                stats.chamber_peak_mps = s;
+                stats.chamber_peak_at_m = p;
+            }
+            ch_sum += s;
+            ch_n += 1;
+            if in_zone(&p, HIGH_DISTURBANCE_Y_RANGE_M) {
+                band_sum += s;
+                band_n += 1;
+            }
+            // Streamline samples every 1 mm.
+            if i % 2 == 0 && j % 2 == 0 {
+                chamber_points.push(p);
+            }
+        }
+    }
+    if ch_n > 0 && band_n > 0 {
+        stats.disturbance_mean_ratio = (band_sum / band_n as f64) / (ch_sum / ch_n as f64);
+    }
+    let outlets: Vec<Vector2<f64>> = ports
+        .iter()
+        .filter(|p| p.kind == PortKind::Outlet)
+        .map(|p| p.edge_point_m)
+        .collect();
+    let step = 0.25e-3;
+    let mut recirc = Vec::new();
+    for &start in &chamber_points {
+        let mut p = start;
+        let mut travelled = 0.0;
+        let mut looped = false;
+        for _ in 0..1600 {
+            let v1 = map.sample(&p);
+            let n1 = v1.norm();
+            if n1 < 1e-6 {
+                break;
+            }
+            let mid = p + v1 / n1 * (0.5 * step);
+            let v2 = map.sample(&mid);
+            let n2 = v2.norm();
+            if n2 < 1e-6 {
+                break;
+            }
+            p += v2 / n2 * step;
+            travelled += step;
+            if outlets.iter().any(|o| (p - o).norm() < 3e-3) || !mask.contains(&p) {
+                break;
+            }
+            if travelled > 5e-3 && (p - start).norm() < 0.5e-3 {
+                looped = true;
+                break;
+            }
+        }
+        if looped {
+            recirc.push(start);
+        }
+    }
+    stats.recirculating_points = recirc.len();
+    stats.recirculating_fraction = recirc.len() as f64 / chamber_points.len().max(1) as f64;
+    let band_total = chamber_points
+        .iter()
+        .filter(|p| in_zone(p, RECIRCULATION_Y_RANGE_M))
+        .count();
+    let band_recirc = recirc
+        .iter()
+        .filter(|p| in_zone(p, RECIRCULATION_Y_RANGE_M))
+        .count();
+    stats.recirculating_in_band = band_recirc as f64 / band_total.max(1) as f64;
+    stats.recirculating_outside_band =
+        (recirc.len() - band_recirc) as f64 / (chamber_points.len() - band_total).max(1) as f64;
+    if !recirc.is_empty() {
+        let mut ys: Vec<f64> = recirc.iter().map(|p| p.y).collect();
+        ys.sort_by(f64::total_cmp);
+        let pct = |f: f64| ys[((ys.len() - 1) as f64 * f).round() as usize];
+        stats.recirculating_y_m = (pct(0.1), pct(0.9));
+    }
+}
+
+/// Writes a speed image (viridis-like ramp, 0 → `max_mps`) of `map` as an RGB PNG, north up.
+pub fn write_speed_png(map: &FlowMap, max_mps: f64, path: &Path) -> anyhow::Result<()> {
+    let (w, h) = (map.nx as u32, map.ny as u32);
+    let mut data = Vec::with_capacity((w * h * 3) as usize);
+    let ramp = [
+        (0.0, [68.0, 1.0, 84.0]),
+        (0.25, [59.0, 82.0, 139.0]),
+        (0.5, [33.0, 145.0, 140.0]),
+        (0.75, [94.0, 201.0, 98.0]),
+        (1.0, [253.0, 231.0, 37.0]),
+    ];
+    for j in (0..map.ny).rev() {
+        for i in 0..map.nx {
+            let v = map.velocity_mps[j * map.nx + i];
+            if v.norm() == 0.0 {
+                data.extend_from_slice(&[0, 0, 0]);
+                continue;
+            }
+            let t = (v.norm() / max_mps).clamp(0.0, 1.0);
+            let k = ramp.iter().rposition(|r| r.0 <= t).unwrap_or(0).min(3);
+            let (t0, c0) = ramp[k];
+            let (t1, c1) = ramp[k + 1];
+            let s = (t - t0) / (t1 - t0);
+            for c in 0..3 {
+                data.push((c0[c] + s * (c1[c] - c0[c])) as u8);
+            }
+        }
+    }
+    let file =
+        std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w, h);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut writer = enc.write_header()?;
+    writer.write_image_data(&data)?;
+    writer.finish()?;
+    Ok(())
+}
 
 /// Arguments of `fieldgen cfd`.
 #[derive(Debug, clap::Args)]
-pub struct CfdArgs {}
+pub struct CfdArgs {
+    /// Regenerate all four committed maps (180 / 250 mL/min × 4.3 / 20 cP) into --out-dir.
+    #[arg(long)]
+    pub all: bool,
+    /// Total pump flow of a single condition, mL/min.
+    #[arg(long)]
+    pub flow_ml_min: Option<f64>,
+    /// Viscosity of a single condition, cP.
+    #[arg(long)]
+    pub viscosity_cp: Option<f64>,
+    /// Output file of a single condition (default: <out-dir>/<condition>.flow.csv).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Directory of the maps.
+    #[arg(long, default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/../../fieldmaps/flow"))]
+    pub out_dir: PathBuf,
+    /// Domain from a user mask PNG (1020x1020, white = canal) instead of the parametric phantom;
+    /// its ports must open on the image edge where the default phantom's do.
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
+    /// Write the canal mask (phantom, or --mask) as a 1020x1020 8-bit PNG here.
+    #[arg(long)]
+    pub write_mask: Option<PathBuf>,
+    /// Also write <condition>.speed.png images next to the maps.
+    #[arg(long)]
+    pub images: bool,
+    /// Run the solver validation cases and print their errors.
+    #[arg(long)]
+    pub validate: bool,
+    /// Lattice spacing, mm.
+    #[arg(long, default_value_t = 0.3)]
+    pub dx_mm: f64,
+    /// Output map spacing, mm.
+    #[arg(long, default_value_t = 0.5)]
+    pub out_spacing_mm: f64,
+    /// Effective depth H of the depth-averaged model, mm (calibrated: see README).
+    #[arg(long, default_value_t = EFFECTIVE_DEPTH_M * 1e3)]
+    pub depth_mm: f64,
+    /// Steady-state tolerance (relative velocity change per step).
+    #[arg(long, default_value_t = 1e-7)]
+    pub tolerance: f64,
+    /// Step limit per condition.
+    #[arg(long, default_value_t = 300_000)]
+    pub max_steps: usize,
+    /// Conditions solved in parallel.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+}
 
-pub fn run(_args: &CfdArgs) -> anyhow::Result<()> {
-    anyhow::bail!("fieldgen cfd is not built yet")
+pub fn run(args: &CfdArgs) -> anyhow::Result<()> {
+    let geometry = ImageGeometry::default();
+    let phantom = Phantom::default_heart();
+    let mask = match &args.mask {
+        Some(path) => CanalMask::load_png(path, &geometry)?,
+        None => CanalMask::from_phantom(&phantom, &geometry)?,
+    };
+    let mut did_something = false;
+    if let Some(path) = &args.write_mask {
+        mask.save_png(path)?;
+        println!(
+            "wrote canal mask {} ({} canal px)",
+            path.display(),
+            mask.canal_pixels()
+        );
+        did_something = true;
+    }
+    if args.validate {
+        let (_, text) = crate::validate::run_all()?;
+        print!("{text}");
+        did_something = true;
+    }
+    let conditions = match (args.all, args.flow_ml_min, args.viscosity_cp) {
+        (true, None, None) => Condition::paper(),
+        (false, Some(q), Some(mu)) => vec![Condition::new(q, mu)],
+        (false, None, None) => Vec::new(),
+        (true, _, _) => anyhow::bail!("--all cannot be combined with --flow-ml-min/--viscosity-cp"),
+        _ => anyhow::bail!("give both --flow-ml-min and --viscosity-cp (or --all)"),
+    };
+    if args.out.is_some() && conditions.len() != 1 {
+        anyhow::bail!("--out needs exactly one condition");
+    }
+    if conditions.is_empty() {
+        if !did_something {
+            anyhow::bail!("nothing to do: give --all, --flow-ml-min with --viscosity-cp, --validate or --write-mask");
+        }
+        return Ok(());
+    }
+    let settings = CfdSettings {
+        dx_m: args.dx_mm * 1e-3,
+        depth_m: args.depth_mm * 1e-3,
+        tolerance: args.tolerance,
+        max_steps: args.max_steps,
+        out_spacing_m: args.out_spacing_mm * 1e-3,
+        ..CfdSettings::default()
+    };
+    let ports = phantom_ports(&phantom, &geometry);
+    std::fs::create_dir_all(&args.out_dir)
+        .with_context(|| format!("creating {}", args.out_dir.display()))?;
+    let source = match &args.mask {
+        Some(p) => format!("mask {}", p.display()),
+        None => "parametric phantom (fieldmaps::phantom::Phantom::default_heart)".to_string(),
+    };
+
+    let bars = indicatif::MultiProgress::new();
+    let style = indicatif::ProgressStyle::with_template(
+        "{prefix:>14} [{elapsed_precise}] {bar:30} {pos}/{len} steps {msg}",
+    )?;
+    let jobs: Vec<(Condition, indicatif::ProgressBar)> = conditions
+        .into_iter()
+        .map(|c| {
+            let bar = bars.add(indicatif::ProgressBar::new(settings.max_steps as u64));
+            bar.set_style(style.clone());
+            bar.set_prefix(c.name.clone());
+            (c, bar)
+        })
+        .collect();
+    let next = AtomicUsize::new(0);
+    let results: Mutex<Vec<(usize, anyhow::Result<CfdStats>)>> = Mutex::new(Vec::new());
+    std::thread::scope(|scope| {
+        for _ in 0..args.threads.clamp(1, jobs.len()) {
+            scope.spawn(|| loop {
+                let k = next.fetch_add(1, Ordering::SeqCst);
+                let Some((condition, bar)) = jobs.get(k) else {
+                    break;
+                };
+                let outcome = (|| -> anyhow::Result<CfdStats> {
+                    let (map, stats) = solve(&mask, &ports, condition, &settings, |steps, res| {
+                        bar.set_position(steps as u64);
+                        bar.set_message(format!("residual {res:.1e}"));
+                    })?;
+                    bar.finish_with_message(format!(
+                        "residual {:.1e}, peak {:.1} mm/s",
+                        stats.convergence.residual,
+                        stats.chamber_peak_mps * 1e3
+                    ));
+                    let path = args.out.clone().unwrap_or_else(|| {
+                        args.out_dir.join(format!("{}.flow.csv", condition.name))
+                    });
+                    let header = format!(
+                        "# generated by: fieldgen cfd (depth-averaged D2Q9 TRT lattice Boltzmann, see fieldmaps/flow/README_SECTION.md)\n\
+                         # domain = {source}\n\
+                         # flow_ml_min = {}\n# viscosity_cp = {}\n# density_kg_m3 = {}\n\
+                         # effective_depth_mm = {}\n# control_plane_factor = {PLANE_FACTOR}\n\
+                         # lattice_dx_mm = {:.4}\n# steps = {}\n# residual = {:.3e}\n\
+                         # mass_imbalance = {:.3e}\n# peak_mps = {:.5}\n# chamber_peak_mps = {:.5}\n",
+                        condition.flow_ml_min(),
+                        condition.viscosity_cp(),
+                        settings.density_kg_m3,
+                        settings.depth_m * 1e3,
+                        stats.dx_m * 1e3,
+                        stats.convergence.steps,
+                        stats.convergence.residual,
+                        stats.mass_imbalance(),
+                        stats.peak_mps,
+                        stats.chamber_peak_mps,
+                    );
+                    std::fs::write(&path, header + &map.to_text())
+                        .with_context(|| format!("writing {}", path.display()))?;
+                    if args.images {
+                        let png = path.with_extension("").with_extension("speed.png");
+                        write_speed_png(&map, stats.peak_mps, &png)?;
+                    }
+                    Ok(stats)
+                })();
+                if outcome.is_err() {
+                    bar.abandon_with_message("failed");
+                }
+                if let Ok(mut r) = results.lock() {
+                    r.push((k, outcome));
+                }
+            });
+        }
+    });
+    let mut results = results
+        .into_inner()
+        .map_err(|_| anyhow::anyhow!("worker panicked"))?;
+    results.sort_by_key(|r| r.0);
+    let mut failed = false;
+    for (k, r) in results {
+        match r {
+            Ok(stats) => println!("{}", stats.summary()),
+            Err(e) => {
+                failed = true;
+                eprintln!("{}: {e:#}", jobs[k].0.name);
+            }
+        }
+    }
+    if failed {
+        anyhow::bail!("some conditions failed");
+    }
+    Ok(())
 }

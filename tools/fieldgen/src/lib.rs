@@ -2,3 +2,5 @@
 pub mod cfd;
 pub mod coils;
 pub mod import;
+pub mod lbm;
+pub mod validate;
