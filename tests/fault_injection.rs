@@ -33,15 +33,12 @@ fn killing_control_zeroes_coils_then_restart_resumes_tracking() {
     let events = run.teensy_events().expect("teensy events");
     let last_command_before = events
         .iter()
-        .filter(|e| e.kind == "command" && e.monotonic_ns <= killed_at)
-        .last()
+        .rfind(|e| e.kind == "command" && e.monotonic_ns <= killed_at)
         .expect("commands before the kill")
         .clone();
     let zero = events
         .iter()
-        .find(|e| {
-            e.monotonic_ns > last_command_before.monotonic_ns && e.max_abs_current_a == 0.0
-        })
+        .find(|e| e.monotonic_ns > last_command_before.monotonic_ns && e.max_abs_current_a == 0.0)
         .expect("currents reached zero after the kill")
         .clone();
     let resumed = events
@@ -76,7 +73,10 @@ fn killing_control_zeroes_coils_then_restart_resumes_tracking() {
     let detection = ms(killed_at, detected.monotonic_ns);
     let restart = ms(killed_at, restarted.monotonic_ns);
     let resume = ms(killed_at, resumed.monotonic_ns);
-    println!("fault injection: SIGKILL control at frame ~{:?}", last_command_before.frame_seq);
+    println!(
+        "fault injection: SIGKILL control at frame ~{:?}",
+        last_command_before.frame_seq
+    );
     println!("  time to zero current: {zero_after_kill:.1} ms after the kill, {zero_after_last_command:.1} ms after the last command (deadline {deadline_ms:.0} ms, by {})", zero.kind);
     println!("  supervisor detection: {detection:.1} ms; restart issued: {restart:.1} ms");
     println!("  time to resume tracking (first new command at the Teensy): {resume:.1} ms");
@@ -94,6 +94,13 @@ fn killing_control_zeroes_coils_then_restart_resumes_tracking() {
         t.max_m * 1e3,
         t.final_error_m * 1e3
     );
-    assert!(t.final_error_m < 0.5e-3, "did not reach the end after the restart");
-    assert!(t.max_m < 3e-3, "error grew to {:.2} mm during the outage", t.max_m * 1e3);
+    assert!(
+        t.final_error_m < 0.5e-3,
+        "did not reach the end after the restart"
+    );
+    assert!(
+        t.max_m < 3e-3,
+        "error grew to {:.2} mm during the outage",
+        t.max_m * 1e3
+    );
 }

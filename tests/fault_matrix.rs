@@ -40,7 +40,10 @@ fn circle_scenario(duration_s: f64, seed: u64) -> String {
 struct Lcg(u64);
 impl Lcg {
     fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (self.0 >> 11) as f64 / (1u64 << 53) as f64
     }
 }
@@ -68,7 +71,9 @@ fn wait_tracking(run: &RunSet, after_ns: u64, commands: usize, timeout: Duration
             .teensy_events()
             .unwrap_or_default()
             .iter()
-            .filter(|e| e.monotonic_ns > after_ns && e.kind == "command" && e.max_abs_current_a > 0.0)
+            .filter(|e| {
+                e.monotonic_ns > after_ns && e.kind == "command" && e.max_abs_current_a > 0.0
+            })
             .count();
         if n >= commands {
             return true;
@@ -83,7 +88,11 @@ fn inject(run: &RunSet, service: &'static str, signal: Signal) -> FaultOutcome {
     let pid = run.pid_of(service).expect("pid");
     let injected = monotonic_ns();
     kill(Pid::from_raw(pid), signal).expect("signal");
-    let detected_event = if signal == Signal::SIGKILL { "exit" } else { "heartbeat_missed" };
+    let detected_event = if signal == Signal::SIGKILL {
+        "exit"
+    } else {
+        "heartbeat_missed"
+    };
     // Recovery: the restarted service is up and commands with current flow again.
     let deadline = Instant::now() + Duration::from_secs(20);
     let mut restart_ns = None;
@@ -101,7 +110,8 @@ fn inject(run: &RunSet, service: &'static str, signal: Signal) -> FaultOutcome {
         }
         std::thread::sleep(Duration::from_millis(20));
     }
-    let restart_ns = restart_ns.unwrap_or_else(|| panic!("{service} was not restarted after {signal}"));
+    let restart_ns =
+        restart_ns.unwrap_or_else(|| panic!("{service} was not restarted after {signal}"));
     let events = run.supervisor_events().expect("events");
     let detected = events
         .iter()
@@ -110,8 +120,7 @@ fn inject(run: &RunSet, service: &'static str, signal: Signal) -> FaultOutcome {
     let teensy = run.teensy_events().expect("teensy");
     let last_before = teensy
         .iter()
-        .filter(|e| e.monotonic_ns <= injected)
-        .next_back()
+        .rfind(|e| e.monotonic_ns <= injected)
         .map(|e| e.monotonic_ns)
         .unwrap_or(injected);
     let safe = teensy
@@ -129,7 +138,11 @@ fn inject(run: &RunSet, service: &'static str, signal: Signal) -> FaultOutcome {
     };
     FaultOutcome {
         service,
-        signal: if signal == Signal::SIGKILL { "SIGKILL" } else { "SIGSTOP" },
+        signal: if signal == Signal::SIGKILL {
+            "SIGKILL"
+        } else {
+            "SIGSTOP"
+        },
         detection_ms: ms(injected, detected.monotonic_ns),
         // From the last frame the Teensy got before the fault (the deadline's start).
         safe_ms: ms(last_before.min(injected), safe.monotonic_ns),
@@ -142,7 +155,10 @@ fn assert_invariants(run: &RunSet, teensy: &[TeensyEvent]) {
     let mut last_seq = None;
     for e in teensy.iter().filter(|e| e.kind == "command") {
         if let (Some(prev), Some(seq)) = (last_seq, e.frame_seq) {
-            assert!(seq > prev, "stale command applied: frame {seq} after frame {prev}");
+            assert!(
+                seq > prev,
+                "stale command applied: frame {seq} after frame {prev}"
+            );
         }
         last_seq = e.frame_seq.or(last_seq);
         assert!(
@@ -152,18 +168,27 @@ fn assert_invariants(run: &RunSet, teensy: &[TeensyEvent]) {
         );
     }
     let leaked = run.shm_segments();
-    assert!(leaked.is_empty(), "leaked shared-memory segments: {leaked:?}");
+    assert!(
+        leaked.is_empty(),
+        "leaked shared-memory segments: {leaked:?}"
+    );
 }
 
 fn quantiles(values: &mut [f64]) -> (f64, f64) {
     values.sort_by(|a, b| a.total_cmp(b));
-    (values[values.len() / 2], *values.last().unwrap_or(&f64::NAN))
+    (
+        values[values.len() / 2],
+        *values.last().unwrap_or(&f64::NAN),
+    )
 }
 
 #[test]
 fn every_service_killed_and_hung_in_turn() {
     let mut run = RunSet::start("faultmatrix", &circle_scenario(40.0, 5)).expect("start");
-    assert!(wait_tracking(&run, 0, 100, Duration::from_secs(60)), "loop never started");
+    assert!(
+        wait_tracking(&run, 0, 100, Duration::from_secs(60)),
+        "loop never started"
+    );
     let mut rng = Lcg(0x5eed);
     let mut plan: Vec<(&'static str, Signal)> = Vec::new();
     for service in ["vision", "flow", "control", "coilbus"] {
@@ -186,7 +211,9 @@ fn every_service_killed_and_hung_in_turn() {
     assert!(status.success(), "supervisor exit {status}");
     let events = run.supervisor_events().expect("events");
     assert!(
-        events.iter().any(|e| e.service == "plant" && e.event == "run_complete"),
+        events
+            .iter()
+            .any(|e| e.service == "plant" && e.event == "run_complete"),
         "the run did not complete"
     );
     let teensy = run.teensy_events().expect("teensy");
@@ -230,7 +257,10 @@ fn soak_random_kills() {
         .unwrap_or(8);
     let duration = 30.0 + kills as f64 * 1.5;
     let mut run = RunSet::start("soak", &circle_scenario(duration, 9)).expect("start");
-    assert!(wait_tracking(&run, 0, 100, Duration::from_secs(60)), "loop never started");
+    assert!(
+        wait_tracking(&run, 0, 100, Duration::from_secs(60)),
+        "loop never started"
+    );
     let mut rng = Lcg(kills as u64 + 17);
     let services = ["vision", "flow", "control", "coilbus"];
     let start = Instant::now();
@@ -243,10 +273,67 @@ fn soak_random_kills() {
             "no recovery after kill {k} of {service}"
         );
     }
-    println!("soak: {kills} kills survived in {:.1} s", start.elapsed().as_secs_f64());
+    println!(
+        "soak: {kills} kills survived in {:.1} s",
+        start.elapsed().as_secs_f64()
+    );
     // The supervisor must still be alive and stop cleanly on request.
     let status = run.stop(Duration::from_secs(30)).expect("supervisor stops");
     assert!(status.success(), "supervisor exit {status}");
     let teensy = run.teensy_events().expect("teensy");
     assert_invariants(&run, &teensy);
+}
+
+#[test]
+fn supervisor_crash_stops_the_set_and_a_new_supervisor_cleans_up() {
+    let mut run = RunSet::start("supcrash", &circle_scenario(20.0, 13)).expect("start");
+    assert!(
+        wait_tracking(&run, 0, 50, Duration::from_secs(60)),
+        "loop never started"
+    );
+    let children: Vec<(&str, i32)> = ["plant", "vision", "flow", "control", "coilbus"]
+        .into_iter()
+        .map(|s| (s, run.pid_of(s).expect("pid")))
+        .collect();
+    run.kill_supervisor().expect("SIGKILL supervisor");
+    // Every child must notice (SIGTERM on parent death) and exit.
+    let deadline = Instant::now() + Duration::from_secs(5);
+    let alive = |pid: i32| kill(Pid::from_raw(pid), None).is_ok() && !is_zombie(pid);
+    while Instant::now() < deadline && children.iter().any(|(_, pid)| alive(*pid)) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let survivors: Vec<&str> = children
+        .iter()
+        .filter(|(_, p)| alive(*p))
+        .map(|(s, _)| *s)
+        .collect();
+    assert!(
+        survivors.is_empty(),
+        "children outlived the supervisor: {survivors:?}"
+    );
+    let coilbus_log = std::fs::read_to_string(run.run_dir.join("logs/coilbus.log")).expect("log");
+    assert!(
+        coilbus_log.contains("coils zeroed"),
+        "coilbus did not zero the coils on its way out"
+    );
+    // A new supervisor on the same iceoryx2 namespace starts cleanly and leaves nothing behind.
+    let mut again =
+        RunSet::restart_in(&run, "supcrash2", &circle_scenario(3.0, 13)).expect("restart");
+    let status = again.wait(Duration::from_secs(120)).expect("second run");
+    assert!(status.success(), "second supervisor exit {status}");
+    assert!(
+        again.shm_segments().is_empty(),
+        "leaked: {:?}",
+        again.shm_segments()
+    );
+}
+
+fn is_zombie(pid: i32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .map(|s| {
+            s.rsplit(')')
+                .next()
+                .is_some_and(|rest| rest.trim_start().starts_with('Z'))
+        })
+        .unwrap_or(true)
 }

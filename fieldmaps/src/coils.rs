@@ -240,6 +240,21 @@ impl CoilSystem {
 /// closed-form model ([`CoilSystem`]) or the interpolated grid maps
 /// ([`crate::fieldmap::CoilFieldMaps`]). Code written against this trait can swap one for the
 /// other.
+/// Shared field models (e.g. one set of loaded maps used by many simulated runs).
+impl<T: CoilField + ?Sized> CoilField for std::sync::Arc<T> {
+    fn coil_count(&self) -> usize {
+        (**self).coil_count()
+    }
+
+    fn field_and_gradient_per_amp(
+        &self,
+        coil: usize,
+        p: &Vector3<f64>,
+    ) -> (Vector3<f64>, Matrix3<f64>) {
+        (**self).field_and_gradient_per_amp(coil, p)
+    }
+}
+
 pub trait CoilField {
     /// Number of independently driven coils.
     fn coil_count(&self) -> usize;

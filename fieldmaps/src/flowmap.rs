@@ -151,7 +151,11 @@ impl FlowMap {
             }
             let fields: Vec<&str> = line.split(',').collect();
             if fields.len() != 4 {
-                return Err(format!("line {}: expected 4 fields, got {}", n + 1, fields.len()));
+                return Err(format!(
+                    "line {}: expected 4 fields, got {}",
+                    n + 1,
+                    fields.len()
+                ));
             }
             let mut values = [0.0f64; 4];
             for (v, f) in values.iter_mut().zip(&fields) {
@@ -227,7 +231,10 @@ mod tests {
         let map = ramp();
         let p = Vector2::new(-0.002 + 0.0025, 0.001 + 0.0013);
         let v = map.sample(&p);
-        assert!((v.x - 0.025).abs() < 1e-12 && (v.y + 0.026).abs() < 1e-12, "{v}");
+        assert!(
+            (v.x - 0.025).abs() < 1e-12 && (v.y + 0.026).abs() < 1e-12,
+            "{v}"
+        );
         assert!(map.covers(&p));
         assert!(!map.covers(&Vector2::new(1.0, 0.0)));
         assert_eq!(map.sample(&Vector2::new(f64::NAN, 0.0)), Vector2::zeros());

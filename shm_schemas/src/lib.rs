@@ -103,7 +103,11 @@ pub enum ContractError {
     #[error("unknown pixel format {0}")]
     UnknownPixelFormat(u32),
     #[error("bad frame geometry {width}x{height} stride {stride}")]
-    BadGeometry { width: u32, height: u32, stride: u32 },
+    BadGeometry {
+        width: u32,
+        height: u32,
+        stride: u32,
+    },
     #[error("frame payload too short: need {needed} bytes, got {got}")]
     ShortPayload { needed: usize, got: usize },
     #[error("bad frame scale {0} mm/px")]

@@ -31,14 +31,28 @@ pub struct RunSet {
 impl RunSet {
     /// Writes `scenario_toml` into a fresh run directory and starts the supervisor on it.
     pub fn start(name: &str, scenario_toml: &str) -> anyhow::Result<Self> {
-        let base = std::env::temp_dir().join(format!("millinav-test-{}-{name}", std::process::id()));
+        Self::start_with(name, scenario_toml, None)
+    }
+
+    fn start_with(
+        name: &str,
+        scenario_toml: &str,
+        namespace: Option<(&str, &Path)>,
+    ) -> anyhow::Result<Self> {
+        let base =
+            std::env::temp_dir().join(format!("millinav-test-{}-{name}", std::process::id()));
         let _ = std::fs::remove_dir_all(&base);
         let run_dir = base.join("run");
         std::fs::create_dir_all(&run_dir)?;
         let scenario_path = base.join("scenario.toml");
         std::fs::write(&scenario_path, scenario_toml)?;
-        let iox_prefix = format!("mt{}{}_", std::process::id(), name.replace(['-', ' '], ""));
-        let iox_root = base.join("iceoryx2");
+        let (iox_prefix, iox_root) = match namespace {
+            Some((prefix, root)) => (prefix.to_owned(), root.to_owned()),
+            None => (
+                format!("mt{}{}_", std::process::id(), name.replace(['-', ' '], "")),
+                base.join("iceoryx2"),
+            ),
+        };
         let mut command = Command::new(bin_dir().join("millinav"));
         command
             .arg("run")
@@ -65,10 +79,36 @@ impl RunSet {
         })
     }
 
+    /// Starts a new supervisor in a new run directory but in the iceoryx2 namespace (prefix and
+    /// root) of `previous`, as an operator restarting after a supervisor crash would.
+    pub fn restart_in(previous: &RunSet, name: &str, scenario_toml: &str) -> anyhow::Result<Self> {
+        let mut run = Self::start_with(
+            name,
+            scenario_toml,
+            Some((&previous.iox_prefix, &previous.iox_root)),
+        )?;
+        run.name = name.to_owned();
+        Ok(run)
+    }
+
+    /// SIGKILLs the supervisor (the children are left to fend for themselves).
+    pub fn kill_supervisor(&mut self) -> anyhow::Result<()> {
+        let mut child = self
+            .supervisor
+            .take()
+            .context("supervisor already reaped")?;
+        child.kill()?;
+        child.wait()?;
+        Ok(())
+    }
+
     /// Waits for the supervisor to exit.
     pub fn wait(&mut self, timeout: Duration) -> anyhow::Result<ExitStatus> {
         let deadline = Instant::now() + timeout;
-        let child = self.supervisor.as_mut().context("supervisor already reaped")?;
+        let child = self
+            .supervisor
+            .as_mut()
+            .context("supervisor already reaped")?;
         loop {
             if let Some(status) = child.try_wait()? {
                 self.supervisor = None;
@@ -88,7 +128,10 @@ impl RunSet {
 
     /// Asks the supervisor to stop (SIGTERM) and waits for it.
     pub fn stop(&mut self, timeout: Duration) -> anyhow::Result<ExitStatus> {
-        let child = self.supervisor.as_ref().context("supervisor already reaped")?;
+        let child = self
+            .supervisor
+            .as_ref()
+            .context("supervisor already reaped")?;
         nix::sys::signal::kill(
             nix::unistd::Pid::from_raw(child.id() as i32),
             nix::sys::signal::Signal::SIGTERM,
@@ -102,7 +145,8 @@ impl RunSet {
 
     /// PID of a service's current incarnation, from the supervisor's pid files.
     pub fn pid_of(&self, service: &str) -> anyhow::Result<i32> {
-        let text = std::fs::read_to_string(self.run_dir.join("pids").join(format!("{service}.pid")))?;
+        let text =
+            std::fs::read_to_string(self.run_dir.join("pids").join(format!("{service}.pid")))?;
         Ok(text.trim().parse()?)
     }
 
@@ -188,7 +232,10 @@ impl Drop for RunSet {
         }
         if let Ok(entries) = std::fs::read_dir("/dev/shm") {
             for e in entries.flatten() {
-                if e.file_name().to_string_lossy().starts_with(&self.iox_prefix) {
+                if e.file_name()
+                    .to_string_lossy()
+                    .starts_with(&self.iox_prefix)
+                {
                     let _ = std::fs::remove_file(e.path());
                 }
             }
@@ -217,7 +264,8 @@ pub struct TruthRow {
 }
 
 pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TruthRow>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let mut rows = Vec::new();
     for line in text.lines().skip(1) {
         let f: Vec<&str> = line.split(',').collect();
@@ -262,7 +310,11 @@ pub struct Tracking {
 }
 
 /// Errors of the truth trace against the reference, for frames at or after `from_time_s`.
-pub fn tracking(scenario: &Scenario, truth: &[TruthRow], from_time_s: f64) -> anyhow::Result<Tracking> {
+pub fn tracking(
+    scenario: &Scenario,
+    truth: &[TruthRow],
+    from_time_s: f64,
+) -> anyhow::Result<Tracking> {
     let reference = Reference::new(
         &scenario.waypoints_m(),
         scenario.trajectory.speed_mm_s * 1e-3,
@@ -296,8 +348,7 @@ pub fn venv_dir() -> PathBuf {
     std::env::var_os("MILLINAV_VENV")
         .map(PathBuf::from)
         .unwrap_or_else(|| {
-            PathBuf::from(std::env::var_os("HOME").unwrap_or_default())
-                .join(".cache/millinav/venv")
+            PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/millinav/venv")
         })
 }
 
@@ -311,7 +362,12 @@ pub fn path_with_rerun() -> std::ffi::OsString {
 }
 
 /// A scenario file's text for tests.
-pub fn scenario_text(duration_s: f64, waypoints_mm: &[[f64; 2]], speed_mm_s: f64, extra: &str) -> String {
+pub fn scenario_text(
+    duration_s: f64,
+    waypoints_mm: &[[f64; 2]],
+    speed_mm_s: f64,
+    extra: &str,
+) -> String {
     let points: Vec<String> = waypoints_mm
         .iter()
         .map(|p| format!("[{:.3}, {:.3}]", p[0], p[1]))

@@ -330,7 +330,12 @@ mod tests {
         assert_eq!(zero.flags, FLAG_SAFE_ZERO);
         assert!(bus.status.watchdog_tripped);
         assert_eq!(bus.status.deadline_misses, 1);
-        let out = apply(&mut bus, &command(2, 0, 1.0), t0 + Duration::from_millis(160)).unwrap();
+        let out = apply(
+            &mut bus,
+            &command(2, 0, 1.0),
+            t0 + Duration::from_millis(160),
+        )
+        .unwrap();
         assert_eq!(out.currents_a, [1.0; COIL_COUNT]);
         assert!(!bus.status.watchdog_tripped);
     }
@@ -365,7 +370,10 @@ mod tests {
         let mut wild = command(1, 0, 1e6);
         wild.currents_a[3] = f64::NAN;
         let out = apply(&mut bus, &wild, Instant::now()).unwrap();
-        assert!(out.currents_a.iter().all(|c| c.abs() <= limits.max_current_a));
+        assert!(out
+            .currents_a
+            .iter()
+            .all(|c| c.abs() <= limits.max_current_a));
         assert_eq!(out.currents_a[3], 0.0);
         let power: f64 = out
             .currents_a

@@ -19,7 +19,8 @@
 //!   frames received u32.
 //!
 //! The decoder resynchronises on the sync word after any corruption and counts what it dropped;
-//! it never panics on arbitrary input.
+//! it never panics on arbitrary input. The full description (tables, CRC parameters, watchdog
+//! semantics) is in `services/coilbus/PROTOCOL.md`.
 
 use crc::{Crc, CRC_16_IBM_3740};
 use shm_schemas::COIL_COUNT;
@@ -191,7 +192,8 @@ impl Decoder {
             // Hunt for the sync word.
             let Some(offset) = find_sync(&self.buffer[start..]) else {
                 // Keep a trailing 0xA5: it may be the first half of a sync word.
-                let keep_from = if self.buffer.len() > start && self.buffer.last() == Some(&SYNC[0]) {
+                let keep_from = if self.buffer.len() > start && self.buffer.last() == Some(&SYNC[0])
+                {
                     self.buffer.len() - 1
                 } else {
                     self.buffer.len()
@@ -245,6 +247,36 @@ impl Decoder {
             self.buffer.clear();
         }
         packets
+    }
+}
+
+/// Feeds `data` to a fresh decoder in chunks whose sizes come from the data itself, then checks
+/// the decoder's invariants: every returned packet re-encodes to a frame present in the input,
+/// the packet counter matches, and the internal buffer stays bounded. Used by the cargo-fuzz
+/// target (`fuzz/fuzz_targets/decoder.rs`) and by the property tests; panics on a violation.
+pub fn check_decoder_invariants(data: &[u8]) {
+    let mut decoder = Decoder::new();
+    let mut packets = Vec::new();
+    let mut rest = data;
+    let mut chunk = 1usize;
+    while !rest.is_empty() {
+        let n = chunk.min(rest.len());
+        packets.extend(decoder.push(&rest[..n]));
+        assert!(
+            decoder.buffer.len() <= HEADER_LEN + MAX_PAYLOAD + CRC_LEN,
+            "decoder buffer grew to {}",
+            decoder.buffer.len()
+        );
+        chunk = 1 + (rest[0] as usize % 97);
+        rest = &rest[n..];
+    }
+    assert_eq!(decoder.counters.packets, packets.len() as u64);
+    for packet in &packets {
+        let bytes = encode(packet);
+        assert!(
+            data.windows(bytes.len()).any(|w| w == bytes.as_slice()),
+            "decoded a packet that is not in the input: {packet:?}"
+        );
     }
 }
 

@@ -43,10 +43,7 @@ pub fn clamp_currents(
         };
         changed |= *o != *r;
     }
-    let power: f64 = out
-        .iter()
-        .map(|c| c * c * limits.coil_resistance_ohm)
-        .sum();
+    let power: f64 = out.iter().map(|c| c * c * limits.coil_resistance_ohm).sum();
     if power > limits.max_total_power_w && power > 0.0 {
         let scale = (limits.max_total_power_w.max(0.0) / power).sqrt();
         out.iter_mut().for_each(|c| *c *= scale);
@@ -71,12 +68,13 @@ impl StaleFilter {
             return false;
         }
         let frame = (cmd.frame_incarnation, cmd.frame_seq);
-        !self.last_frame.is_some_and(|last| frame <= last)
+        self.last_frame.is_none_or(|last| frame > last)
     }
 
     /// Records `cmd` as applied.
     pub fn commit(&mut self, cmd: &CoilCommand) {
-        self.newest_control_incarnation = self.newest_control_incarnation.max(cmd.control_incarnation);
+        self.newest_control_incarnation =
+            self.newest_control_incarnation.max(cmd.control_incarnation);
         self.last_frame = Some((cmd.frame_incarnation, cmd.frame_seq));
     }
 }

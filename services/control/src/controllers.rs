@@ -137,6 +137,14 @@ pub struct SmcGains {
     pub wr: f64,
     /// Run with the disturbance observer (false = the paper's "SMC without DOB" ablation).
     pub use_dob: bool,
+    /// Schedule K4, η and φ automatically from the flow map's local speed (static gains in
+    /// still fluid, the paper's flow gains at `schedule_ref_speed_mps`) and widen η and φ in
+    /// the high-disturbance zone as the paper did by hand (η x1.75, φ x1.5).
+    pub auto_schedule: bool,
+    pub flow_k4_n: f64,
+    pub flow_eta_s: f64,
+    pub flow_phi_m: f64,
+    pub schedule_ref_speed_mps: f64,
 }
 
 impl Default for SmcGains {
@@ -153,6 +161,11 @@ impl Default for SmcGains {
             wp: 1.0,
             wr: 1.0,
             use_dob: true,
+            auto_schedule: false,
+            flow_k4_n: 3.0e-4,
+            flow_eta_s: 12.0e-2,
+            flow_phi_m: 18.0e-3,
+            schedule_ref_speed_mps: 0.07,
         }
     }
 }
@@ -178,6 +191,23 @@ impl SmcDob {
         }
     }
 
+    /// The gains for this step: as configured, or scheduled from the flow (see `auto_schedule`).
+    fn scheduled(&self, input: &ControlInput) -> SmcGains {
+        let g = &self.gains;
+        if !g.auto_schedule {
+            return g.clone();
+        }
+        let b = (input.flow_mps.norm() / g.schedule_ref_speed_mps.max(1e-6)).clamp(0.0, 1.0);
+        let lerp = |a: f64, c: f64| a + (c - a) * b;
+        let zone = if input.high_disturbance { 1.0 } else { 0.0 };
+        SmcGains {
+            k4_n: lerp(g.k4_n, g.flow_k4_n),
+            eta_s: lerp(g.eta_s, g.flow_eta_s) * (1.0 + 0.75 * zone),
+            phi_m: lerp(g.phi_m, g.flow_phi_m) * (1.0 + 0.5 * zone),
+            ..g.clone()
+        }
+    }
+
     /// C(ẋ, V) = c_t (ẋ + V) exactly as the paper writes it (Eq. 12–13). With the DOB on, the
     /// C terms of d̂ and u_eq cancel; without it, −C adds damping and cancels the flow push.
     fn modeled_drag(&self, velocity: &Vector2<f64>, flow: &Vector2<f64>) -> Vector2<f64> {
@@ -187,21 +217,21 @@ impl SmcDob {
 
 impl Controller for SmcDob {
     fn name(&self) -> &'static str {
-        if self.gains.use_dob {
-            "smc-dob"
-        } else {
-            "smc"
+        match (self.gains.use_dob, self.gains.auto_schedule) {
+            (true, false) => "smc-dob",
+            (true, true) => "smc-dob-auto",
+            (false, _) => "smc",
         }
     }
     fn id(&self) -> u32 {
-        if self.gains.use_dob {
-            2
-        } else {
-            3
+        match (self.gains.use_dob, self.gains.auto_schedule) {
+            (true, false) => 2,
+            (true, true) => 5,
+            (false, _) => 3,
         }
     }
     fn update(&mut self, input: &ControlInput) -> (Vector2<f64>, ControlTerms) {
-        let g = &self.gains;
+        let g = &self.scheduled(input);
         let m = self.model.mass_kg;
         let e = input.reference.position_m - input.position_m;
         let e_dot = input.reference.velocity_mps - input.velocity_mps;
@@ -225,7 +255,8 @@ impl Controller for SmcDob {
         } else {
             Vector2::zeros()
         };
-        let u_eq = (e_dot * g.k1 + e * g.k2) * (m / g.k3) + input.reference.acceleration_mps2 * m - c;
+        let u_eq =
+            (e_dot * g.k1 + e * g.k2) * (m / g.k3) + input.reference.acceleration_mps2 * m - c;
         let u_sw = s.map(|v| g.k4_n * (v / g.phi_m).tanh());
         let force = -d_hat + u_eq + u_sw;
         self.previous_force = force;
@@ -255,6 +286,10 @@ pub enum ControllerKind {
     Pid,
     SmcDob,
     Smc,
+    Mpc,
+    /// SMC-DOB with automatic gain scheduling (beyond the paper; pair it with
+    /// `constrained_allocation = true`).
+    SmcDobAuto,
 }
 
 impl ControllerKind {
@@ -262,6 +297,7 @@ impl ControllerKind {
         self,
         pid: &PidGains,
         smc: &SmcGains,
+        mpc: &crate::mpc::MpcGains,
         model: NominalModel,
     ) -> Box<dyn Controller> {
         match self {
@@ -276,6 +312,15 @@ impl ControllerKind {
             Self::Smc => Box::new(SmcDob::new(
                 SmcGains {
                     use_dob: false,
+                    ..smc.clone()
+                },
+                model,
+            )),
+            Self::Mpc => Box::new(crate::mpc::Mpc::new(mpc.clone(), model)),
+            Self::SmcDobAuto => Box::new(SmcDob::new(
+                SmcGains {
+                    use_dob: true,
+                    auto_schedule: true,
                     ..smc.clone()
                 },
                 model,

@@ -4,12 +4,16 @@
 //! coils; the loop holds the orientation field briefly, then goes safe (zero currents).
 
 pub mod controllers;
+pub mod mpc;
 pub mod reference;
 
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use fieldmaps::allocation::{actuation_matrix, allocate_limited, DEFAULT_PLANAR_COILS};
+use fieldmaps::allocation::{
+    actuation_matrix, allocate_constrained, allocate_limited, ConstrainedSettings,
+    DEFAULT_PLANAR_COILS,
+};
 use fieldmaps::coils::CoilSystem;
 use fieldmaps::phantom::Phantom;
 use fieldmaps::physics;
@@ -39,6 +43,8 @@ pub struct ControlConfig {
     pub controller: ControllerKind,
     pub pid: PidGains,
     pub smc: SmcGains,
+    /// MPC gains (`[control.mpc]`).
+    pub mpc: mpc::MpcGains,
     /// Heading of the orientation field (deg from +x; the paper fixes 45° in static tests).
     pub field_heading_deg: f64,
     /// Magnitude of the orientation field.
@@ -52,6 +58,9 @@ pub struct ControlConfig {
     /// Time constant of the velocity estimate's low-pass filter.
     pub velocity_filter_ms: f64,
     pub limits: CoilLimits,
+    /// Allocate with the constrained QP (per-coil and total limits, best effort when the
+    /// command is infeasible) instead of the paper's pseudo-inverse followed by scaling.
+    pub constrained_allocation: bool,
 }
 
 impl Default for ControlConfig {
@@ -60,6 +69,7 @@ impl Default for ControlConfig {
             controller: ControllerKind::Pid,
             pid: PidGains::default(),
             smc: SmcGains::default(),
+            mpc: mpc::MpcGains::default(),
             field_heading_deg: 45.0,
             field_magnitude_mt: 1.0,
             omega0_n_per_t: 0.05,
@@ -67,6 +77,7 @@ impl Default for ControlConfig {
             max_speed_mps: 0.3,
             velocity_filter_ms: 30.0,
             limits: CoilLimits::default(),
+            constrained_allocation: false,
         }
     }
 }
@@ -112,7 +123,10 @@ impl ControlLoop {
                 robot.diameter_m / 2.0,
             ),
         };
-        let controller = config.controller.build(&config.pid, &config.smc, model);
+        let mpc = mpc::MpcGains::for_config(&config);
+        let controller = config
+            .controller
+            .build(&config.pid, &config.smc, &mpc, model);
         Self {
             config,
             reference,
@@ -159,7 +173,12 @@ impl ControlLoop {
     }
 
     /// Currents for a desired force and the orientation field at the robot's pose.
-    fn allocate(&self, position: &Vector2<f64>, heading: f64, force: &Vector2<f64>) -> [f64; COIL_COUNT] {
+    fn allocate(
+        &self,
+        position: &Vector2<f64>,
+        heading: f64,
+        force: &Vector2<f64>,
+    ) -> [f64; COIL_COUNT] {
         let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
         let p3 = Vector3::new(position.x, position.y, 0.0);
         let omega0 = self.config.omega0_n_per_t;
@@ -167,12 +186,41 @@ impl ControlLoop {
         let b = self.desired_field();
         let c = DVector::from_vec(vec![force.x, force.y, omega0 * b.x, omega0 * b.y]);
         let mut currents = [0.0; COIL_COUNT];
-        if let Ok(allocation) = allocate_limited(&a, &c, &self.config.limits) {
+        let allocated = if self.config.constrained_allocation {
+            allocate_constrained(&a, &c, &self.config.limits, &ConstrainedSettings::default())
+                .map(|a| a.currents_a)
+        } else {
+            allocate_limited(&a, &c, &self.config.limits).map(|a| a.currents_a)
+        };
+        if let Ok(allocated) = allocated {
             for (k, &id) in DEFAULT_PLANAR_COILS.iter().enumerate() {
-                currents[id] = allocation.currents_a[k];
+                currents[id] = allocated[k];
             }
         }
         currents
+    }
+
+    /// A safe-state (zero current) command answering `pose`, e.g. when an input is lost.
+    pub fn safe(&mut self, pose: &Pose, why: &'static str) -> Decision {
+        let t = pose.capture_time_ns as f64 * 1e-9;
+        let reference = self.reference.sample(t);
+        self.controller.reset();
+        self.last_mode = ControlMode::Safe;
+        Decision {
+            command: CoilCommand {
+                frame_seq: pose.frame_seq,
+                frame_incarnation: pose.frame_incarnation,
+                capture_time_ns: pose.capture_time_ns,
+                control_incarnation: self.incarnation,
+                controller_id: self.controller.id(),
+                mode: ControlMode::Safe as u32,
+                ..Default::default()
+            },
+            terms: ControlTerms::default(),
+            reference_m: reference.position_m,
+            finished: reference.finished,
+            rejected: Some(why),
+        }
     }
 
     /// One step: the command for `pose` given the flow estimate made for it (if any).
@@ -281,8 +329,16 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
     recording::scalar(rec, "control/error_mm/x", e.x);
     recording::scalar(rec, "control/error_mm/y", e.y);
     recording::scalar(rec, "control/error_mm/norm", e.norm());
-    recording::scalar(rec, "control/error_rate_mm_s/x", d.terms.error_rate_mps.x * 1e3);
-    recording::scalar(rec, "control/error_rate_mm_s/y", d.terms.error_rate_mps.y * 1e3);
+    recording::scalar(
+        rec,
+        "control/error_rate_mm_s/x",
+        d.terms.error_rate_mps.x * 1e3,
+    );
+    recording::scalar(
+        rec,
+        "control/error_rate_mm_s/y",
+        d.terms.error_rate_mps.y * 1e3,
+    );
     recording::scalar(rec, "control/sliding_surface/x", d.terms.sliding_surface.x);
     recording::scalar(rec, "control/sliding_surface/y", d.terms.sliding_surface.y);
     recording::scalar(rec, "control/d_hat_n/x", d.terms.disturbance_estimate_n.x);
@@ -295,8 +351,11 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
     }
     let _ = rec.log(
         "world/reference",
-        &rerun::Points2D::new([[(d.reference_m.x * 1e3) as f32, (d.reference_m.y * 1e3) as f32]])
-            .with_radii([0.8]),
+        &rerun::Points2D::new([[
+            (d.reference_m.x * 1e3) as f32,
+            (d.reference_m.y * 1e3) as f32,
+        ]])
+        .with_radii([0.8]),
     );
     if pose.valid {
         let _ = rec.log(
@@ -312,6 +371,9 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
         );
     }
 }
+
+/// Without flow estimates for this long, control commands the safe state.
+pub const FLOW_LOST_AFTER: Duration = Duration::from_millis(50);
 
 /// Waits (bounded) for the flow estimate made for `frame_seq`.
 fn flow_for(
@@ -356,6 +418,9 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     let commands = Outbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
     let mut flow_cache = Vec::new();
     let mut flow_misses: u64 = 0;
+    // Wall time of the last flow estimate: flow is an input of the loop, and losing it must
+    // bring the coils to zero within one command deadline, like losing the poses does.
+    let mut last_flow = Instant::now();
 
     let waitset = WaitSetBuilder::new()
         .create::<ipc::Service>()
@@ -395,14 +460,30 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         let Some(pose) = poses.latest()? else {
             continue;
         };
-        let flow = flow_for(&flows, &mut flow_cache, pose.frame_seq, deadlines::FLOW_FOR_POSE)?;
+        let flow = flow_for(
+            &flows,
+            &mut flow_cache,
+            pose.frame_seq,
+            deadlines::FLOW_FOR_POSE,
+        )?;
         if flow.is_none() {
             flow_misses += 1;
-            if flow_misses == 1 || flow_misses % 100 == 0 {
-                tracing::warn!(seq = pose.frame_seq, flow_misses, "no flow estimate for pose");
+            if flow_misses == 1 || flow_misses.is_multiple_of(100) {
+                tracing::warn!(
+                    seq = pose.frame_seq,
+                    flow_misses,
+                    "no flow estimate for pose"
+                );
             }
         }
-        let decision = control.step(&pose, flow.as_ref());
+        if flow.is_some() {
+            last_flow = Instant::now();
+        }
+        let decision = if last_flow.elapsed() > FLOW_LOST_AFTER {
+            control.safe(&pose, "flow estimates lost")
+        } else {
+            control.step(&pose, flow.as_ref())
+        };
         commands.send(decision.command)?;
         recording::set_time(&rt.rec, pose.capture_time_ns, pose.frame_seq);
         log_decision(&rt.rec, &pose, &decision);
@@ -416,4 +497,90 @@ pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()>
     let scenario = Scenario::load(scenario_path)
         .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
     run(&mut rt, &scenario)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn control_loop() -> ControlLoop {
+        let reference = Reference::new(&[[-0.018, 0.012], [-0.012, 0.008]], 1e-3, 0.0).unwrap();
+        ControlLoop::new(ControlConfig::default(), reference, 0.02, 0)
+    }
+
+    fn pose(seq: u64, t_s: f64, x: f64, y: f64) -> Pose {
+        Pose {
+            frame_seq: seq,
+            capture_time_ns: (t_s * 1e9) as u64,
+            position_m: [x, y],
+            heading_rad: std::f64::consts::FRAC_PI_4,
+            confidence: 1.0,
+            valid: true,
+            ..Default::default()
+        }
+    }
+
+    fn mode(d: &Decision) -> ControlMode {
+        ControlMode::from_u32(d.command.mode).unwrap()
+    }
+
+    #[test]
+    fn good_poses_track() {
+        let mut c = control_loop();
+        let d = c.step(&pose(0, 0.0, -0.018, 0.012), None);
+        assert_eq!(mode(&d), ControlMode::Track);
+        assert!(d.command.currents_a.iter().any(|i| *i != 0.0));
+        assert!(d.command.currents_a.iter().all(|i| i.is_finite()));
+    }
+
+    #[test]
+    fn nan_pose_holds_then_goes_safe() {
+        let mut c = control_loop();
+        c.step(&pose(0, 0.0, -0.018, 0.012), None);
+        let mut bad = pose(1, 0.01, f64::NAN, 0.012);
+        let d = c.step(&bad, None);
+        assert_eq!(mode(&d), ControlMode::Hold);
+        assert!(d.rejected.is_some());
+        bad.frame_seq = 2;
+        bad.capture_time_ns = 1_000_000_000;
+        let d = c.step(&bad, None);
+        assert_eq!(mode(&d), ControlMode::Safe);
+        assert!(d.command.currents_a.iter().all(|i| *i == 0.0));
+        let inf = pose(3, 1.01, f64::INFINITY, f64::NEG_INFINITY);
+        assert_eq!(mode(&c.step(&inf, None)), ControlMode::Safe);
+    }
+
+    #[test]
+    fn out_of_canal_and_impossible_jumps_are_rejected() {
+        let mut c = control_loop();
+        // A point in the agarose wall, far from any canal.
+        let d = c.step(&pose(0, 0.0, 0.045, -0.045), None);
+        assert_eq!(d.rejected, Some("pose outside the canal"));
+        assert_ne!(mode(&d), ControlMode::Track);
+        c.step(&pose(1, 0.1, -0.018, 0.012), None);
+        // 15 mm in 10 ms is far beyond the robot's speed.
+        let d = c.step(&pose(2, 0.11, -0.018, -0.003), None);
+        assert_eq!(
+            d.rejected,
+            Some("pose jumped farther than the robot can move")
+        );
+    }
+
+    #[test]
+    fn invalid_flag_is_never_tracked() {
+        let mut c = control_loop();
+        let mut p = pose(0, 0.0, -0.018, 0.012);
+        p.valid = false;
+        let d = c.step(&p, None);
+        assert_ne!(mode(&d), ControlMode::Track);
+    }
+
+    #[test]
+    fn safe_command_is_zero() {
+        let mut c = control_loop();
+        let d = c.safe(&pose(5, 0.5, -0.018, 0.012), "flow estimates lost");
+        assert_eq!(mode(&d), ControlMode::Safe);
+        assert_eq!(d.command.frame_seq, 5);
+        assert!(d.command.currents_a.iter().all(|i| *i == 0.0));
+    }
 }

@@ -42,8 +42,10 @@ pub fn open_event(
 fn open_pubsub<T: Debug + ZeroCopySend + 'static>(
     node: &Node<ipc::Service>,
     name: &str,
-) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>, KitError>
-{
+) -> Result<
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>,
+    KitError,
+> {
     node.service_builder(&service_name(name)?)
         .publish_subscribe::<T>()
         // No history: a restarted consumer must never act on a command from before it started.
@@ -143,7 +145,11 @@ pub struct FrameOutbox {
 fn open_frame_service(
     node: &Node<ipc::Service>,
 ) -> Result<
-    iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, [u8], FrameHeader>,
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<
+        ipc::Service,
+        [u8],
+        FrameHeader,
+    >,
     KitError,
 > {
     node.service_builder(&service_name(services::FRAME)?)

@@ -91,7 +91,14 @@ pub struct Scenario {
     pub path: PathBuf,
 }
 
-const KNOWN_SECTIONS: [&str; 6] = ["plant", "vision", "flow", "control", "coilbus", "supervisor"];
+const KNOWN_SECTIONS: [&str; 6] = [
+    "plant",
+    "vision",
+    "flow",
+    "control",
+    "coilbus",
+    "supervisor",
+];
 
 impl Scenario {
     pub fn load(path: &Path) -> Result<Self, ScenarioError> {
@@ -139,15 +146,14 @@ impl Scenario {
         }
         let traj = &scenario.trajectory;
         if traj.waypoints_mm.len() < 2 {
-            return Err(invalid("trajectory.waypoints_mm needs at least 2 points".into()));
+            return Err(invalid(
+                "trajectory.waypoints_mm needs at least 2 points".into(),
+            ));
         }
-        if traj
-            .waypoints_mm
-            .iter()
-            .flatten()
-            .any(|v| !v.is_finite())
-        {
-            return Err(invalid("trajectory.waypoints_mm holds a non-finite value".into()));
+        if traj.waypoints_mm.iter().flatten().any(|v| !v.is_finite()) {
+            return Err(invalid(
+                "trajectory.waypoints_mm holds a non-finite value".into(),
+            ));
         }
         if !(traj.speed_mm_s.is_finite() && traj.speed_mm_s > 0.0) {
             return Err(invalid(format!(
@@ -162,13 +168,15 @@ impl Scenario {
     pub fn section<T: DeserializeOwned + Default>(&self, name: &str) -> Result<T, ScenarioError> {
         match self.sections.get(name) {
             None => Ok(T::default()),
-            Some(value) => value
-                .clone()
-                .try_into()
-                .map_err(|e: toml::de::Error| ScenarioError::Invalid {
-                    path: self.path.clone(),
-                    message: format!("[{name}]: {e}"),
-                }),
+            Some(value) => {
+                value
+                    .clone()
+                    .try_into()
+                    .map_err(|e: toml::de::Error| ScenarioError::Invalid {
+                        path: self.path.clone(),
+                        message: format!("[{name}]: {e}"),
+                    })
+            }
         }
     }
 
@@ -234,7 +242,10 @@ controller = "pid"
     fn rejects_bad_scenarios_with_clear_messages() {
         let typo = GOOD.replace("[control]", "[contrl]");
         let err = Scenario::parse(&typo, Path::new("x.toml")).unwrap_err();
-        assert!(err.to_string().contains("unknown section [contrl]"), "{err}");
+        assert!(
+            err.to_string().contains("unknown section [contrl]"),
+            "{err}"
+        );
 
         let nan = GOOD.replace("duration_s = 5.0", "duration_s = nan");
         let err = Scenario::parse(&nan, Path::new("x.toml")).unwrap_err();

@@ -5,11 +5,11 @@
 pub mod model;
 pub mod render;
 pub mod teensy;
+pub mod trueflow;
 
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use fieldmaps::coils::CoilSystem;
 use fieldmaps::flowmap::FlowMap;
 use fieldmaps::phantom::{ImageGeometry, Phantom};
 use fieldmaps::rig::{FluidParams, RobotParams};
@@ -24,7 +24,7 @@ use shm_schemas::{
 };
 
 use crate::model::{PlantModel, PlantPhysicsConfig, PlantState};
-use crate::render::Camera;
+use crate::render::{Camera, CameraConfig, CapsulePose};
 use crate::teensy::EmulatedTeensy;
 
 /// `[plant]` section of a scenario.
@@ -39,6 +39,8 @@ pub struct PlantConfig {
     /// Log the true pose every frame and a summary image every this many frames.
     pub log_every_frames: u64,
     pub physics: PlantPhysicsConfig,
+    /// Blur, lighting drift, latency (`[plant.camera]`).
+    pub camera: CameraConfig,
 }
 
 impl Default for PlantConfig {
@@ -49,6 +51,7 @@ impl Default for PlantConfig {
             camera_noise_std: 3.0,
             log_every_frames: 1,
             physics: PlantPhysicsConfig::default(),
+            camera: CameraConfig::default(),
         }
     }
 }
@@ -70,6 +73,20 @@ impl FlowMapChoice {
     }
 }
 
+/// The committed coil field maps (fieldmaps/coils), loaded once per process and shared.
+pub fn coil_maps() -> anyhow::Result<std::sync::Arc<fieldmaps::fieldmap::CoilFieldMaps>> {
+    static MAPS: std::sync::OnceLock<
+        Result<std::sync::Arc<fieldmaps::fieldmap::CoilFieldMaps>, String>,
+    > = std::sync::OnceLock::new();
+    MAPS.get_or_init(|| {
+        fieldmaps::fieldmap::CoilFieldMaps::load_default()
+            .map(std::sync::Arc::new)
+            .map_err(|e| e.to_string())
+    })
+    .clone()
+    .map_err(|e| anyhow::anyhow!("coil field maps: {e}"))
+}
+
 /// Builds the twin's model for a scenario (shared with in-process experiment runs).
 pub fn build_model(scenario: &Scenario, config: &PlantConfig) -> anyhow::Result<PlantModel> {
     let fluid = FluidParams {
@@ -78,7 +95,7 @@ pub fn build_model(scenario: &Scenario, config: &PlantConfig) -> anyhow::Result<
     };
     let flow: FlowMapChoice = scenario.section("flow")?;
     Ok(PlantModel::new(
-        CoilSystem::paper_rig(),
+        coil_maps()?,
         RobotParams::default(),
         &fluid,
         Phantom::default_heart(),
@@ -113,8 +130,15 @@ fn truth_of(state: &PlantState, frame_seq: u64, misses: u64) -> PlantTruth {
     }
 }
 
-fn log_truth(rec: &millinav_kit::rerun::RecordingStream, state: &PlantState, path: &mut Vec<[f32; 2]>) {
-    let p = [(state.position_m.x * 1e3) as f32, (state.position_m.y * 1e3) as f32];
+fn log_truth(
+    rec: &millinav_kit::rerun::RecordingStream,
+    state: &PlantState,
+    path: &mut Vec<[f32; 2]>,
+) {
+    let p = [
+        (state.position_m.x * 1e3) as f32,
+        (state.position_m.y * 1e3) as f32,
+    ];
     path.push(p);
     let _ = rec.log(
         "world/robot/true_position",
@@ -122,8 +146,13 @@ fn log_truth(rec: &millinav_kit::rerun::RecordingStream, state: &PlantState, pat
     );
     recording::scalar(rec, "plant/true_x_mm", state.position_m.x * 1e3);
     recording::scalar(rec, "plant/true_y_mm", state.position_m.y * 1e3);
-    recording::scalar(rec, "plant/wall_contact", f64::from(u8::from(state.wall_contact)));
-    if path.len() % 25 == 0 {
+    recording::scalar(
+        rec,
+        "plant/wall_contact",
+        f64::from(u8::from(state.wall_contact)),
+    );
+    recording::scalar(rec, "plant/contact_events", state.contact_events as f64);
+    if path.len().is_multiple_of(25) {
         let _ = rec.log(
             "world/actual_path",
             &millinav_kit::rerun::LineStrips2D::new([path.clone()]),
@@ -138,7 +167,18 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     let mut state = initial_state(scenario, &config, &model);
     let geometry = ImageGeometry::default();
     let mut render_rng = model::run_rng(scenario.run.seed, 1);
-    let camera = Camera::new(&model.phantom, geometry.clone(), &mut render_rng, config.camera_noise_std);
+    let camera = Camera::with_config(
+        &model.phantom,
+        geometry,
+        &mut render_rng,
+        config.camera_noise_std,
+        config.camera.clone(),
+    );
+    // States of the last `latency_frames` + 1 frames: frame k shows the state of frame k − L.
+    let latency = config.camera.latency_frames as usize;
+    let mut history: std::collections::VecDeque<PlantState> =
+        std::collections::VecDeque::with_capacity(latency + 1);
+    let mut contacts = ContactLog::create(&rt.env.run_dir.join(CONTACTS_CSV))?;
     std::fs::create_dir_all(&rt.env.run_dir)?;
     let mut teensy = EmulatedTeensy::start(
         &rt.env.run_dir.join(millinav_coilbus::EMULATED_PORT_LINK),
@@ -159,6 +199,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     let mut seq: u64 = 0;
     let mut misses: u64 = 0;
     let mut started = false;
+    let mut last_recorded: Option<u64> = None;
     let mut actual_path = Vec::new();
     let wall_start = Instant::now();
     tracing::info!(
@@ -166,7 +207,12 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         duration_s = scenario.run.duration_s,
         "plant running"
     );
-    let publish = |seq: u64, state: &PlantState, misses: u64, run_time_ns: u64| -> anyhow::Result<()> {
+    let publish = |seq: u64,
+                   state: &PlantState,
+                   shown: &PlantState,
+                   misses: u64,
+                   run_time_ns: u64|
+     -> anyhow::Result<()> {
         let header = FrameHeader {
             seq,
             incarnation,
@@ -180,15 +226,14 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             origin_y_mm: geometry.origin_y_mm,
         };
         let mut rng = model::run_rng(scenario.run.seed, 1000 + seq);
-        frames.send(header, camera.background(seq), |rgb| {
-            camera.draw_capsule(
-                rgb,
-                &state.position_m,
-                state.heading_rad,
-                model.robot.length_m,
-                model.robot.diameter_m,
-                &mut rng,
-            )
+        let capsule = CapsulePose {
+            position_m: shown.position_m,
+            heading_rad: shown.heading_rad,
+            length_m: model.robot.length_m,
+            diameter_m: model.robot.diameter_m,
+        };
+        frames.send(header, camera.frame_background(seq), |rgb| {
+            camera.finish_frame(rgb, &capsule, seq, state.time_s, &mut rng, None)
         })?;
         truth_out.send(truth_of(state, seq, misses))?;
         Ok(())
@@ -203,11 +248,25 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             ClockMode::Lockstep => millinav_kit::clock::secs_to_ns(state.time_s),
             ClockMode::Realtime => rt.env.run_clock_ns(),
         };
-        publish(seq, &state, misses, run_time_ns)?;
-        truth_csv.append(&truth_of(&state, seq, misses))?;
-        recording::set_time(&rt.rec, millinav_kit::clock::secs_to_ns(state.time_s), seq);
-        if seq % config.log_every_frames.max(1) == 0 {
-            log_truth(&rt.rec, &state, &mut actual_path);
+        // Frame 0 is re-published until the chain answers: record each frame once only, so
+        // the trace does not depend on how long the other processes took to start.
+        let fresh_frame = last_recorded != Some(seq);
+        if fresh_frame {
+            history.push_back(state.clone());
+            while history.len() > latency + 1 {
+                history.pop_front();
+            }
+        }
+        let shown = history.front().unwrap_or(&state);
+        publish(seq, &state, shown, misses, run_time_ns)?;
+        if fresh_frame {
+            last_recorded = Some(seq);
+            truth_csv.append(&truth_of(&state, seq, misses))?;
+            contacts.record(seq, &state)?;
+            recording::set_time(&rt.rec, millinav_kit::clock::secs_to_ns(state.time_s), seq);
+            if seq.is_multiple_of(config.log_every_frames.max(1)) {
+                log_truth(&rt.rec, &state, &mut actual_path);
+            }
         }
         rt.heartbeat.beat();
         frames.update_connections();
@@ -218,6 +277,8 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             tracing::info!(
                 frames = seq,
                 misses,
+                contact_events = state.contact_events,
+                contact_time_s = state.contact_time_s,
                 wall_s = wall_start.elapsed().as_secs_f64(),
                 "run complete"
             );
@@ -225,8 +286,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         }
         let commanded: [f64; COIL_COUNT] = match scenario.run.mode {
             ClockMode::Lockstep => {
-                let (outputs, in_time) =
-                    teensy.wait_for_frame(seq, deadlines::LOCKSTEP_COMMAND);
+                let (outputs, in_time) = teensy.wait_for_frame(seq, deadlines::LOCKSTEP_COMMAND);
                 if !started {
                     // Until the chain answers once, keep re-publishing frame 0: the run starts
                     // when every process is up, not when the plant happens to be.
@@ -242,7 +302,13 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                     misses += 1;
                     tracing::debug!(seq, "lockstep: command missed its deadline");
                 }
-                outputs.currents_a
+                if in_time {
+                    // The command that answered this frame, even if a safe-zero keep-alive
+                    // raced in after it: the step must not depend on wall-clock timing.
+                    outputs.last_command_currents_a
+                } else {
+                    outputs.currents_a
+                }
             }
             ClockMode::Realtime => {
                 let next = wall_start + Duration::from_secs_f64((seq + 1) as f64 * frame_period);
@@ -257,6 +323,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     }
     teensy.stop();
     truth_csv.flush()?;
+    contacts.flush()?;
     let _ = rt.rec.flush_blocking();
     Ok(())
 }
@@ -277,7 +344,10 @@ impl TruthCsv {
         use std::io::Write;
         // Append: a restarted plant continues the same trace.
         let fresh = !path.exists();
-        let file = std::fs::OpenOptions::new().create(true).append(true).open(path)?;
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)?;
         let mut out = std::io::BufWriter::new(file);
         if fresh {
             writeln!(out, "{}", Self::HEADER)?;
@@ -287,7 +357,10 @@ impl TruthCsv {
 
     pub fn append(&mut self, t: &PlantTruth) -> anyhow::Result<()> {
         use std::io::Write;
-        let max_current = t.applied_currents_a.iter().fold(0.0f64, |m, c| m.max(c.abs()));
+        let max_current = t
+            .applied_currents_a
+            .iter()
+            .fold(0.0f64, |m, c| m.max(c.abs()));
         writeln!(
             self.out,
             "{},{:.6},{:.9},{:.9},{:.9},{:.9},{:.6},{:.9},{:.9},{},{:.6},{}",
@@ -304,6 +377,73 @@ impl TruthCsv {
             max_current,
             t.lockstep_misses
         )?;
+        Ok(())
+    }
+
+    pub fn flush(&mut self) -> anyhow::Result<()> {
+        use std::io::Write;
+        self.out.flush()?;
+        Ok(())
+    }
+}
+
+/// File name of the wall-contact log in a run directory.
+pub const CONTACTS_CSV: &str = "contacts.csv";
+
+/// Wall contacts as they start and end (one row per change), with the running onset count.
+pub struct ContactLog {
+    out: std::io::BufWriter<std::fs::File>,
+    touching: bool,
+    reported_events: u64,
+}
+
+impl ContactLog {
+    pub const HEADER: &'static str =
+        "frame_seq,sim_time_s,event,x_m,y_m,contact_events,contact_time_s";
+
+    pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
+        use std::io::Write;
+        let fresh = !path.exists();
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)?;
+        let mut out = std::io::BufWriter::new(file);
+        if fresh {
+            writeln!(out, "{}", Self::HEADER)?;
+        }
+        Ok(Self {
+            out,
+            touching: false,
+            reported_events: 0,
+        })
+    }
+
+    /// Logs a `start` when a new contact began during the last step (also a brief one that
+    /// ended within it) and an `end` when the capsule is free again.
+    pub fn record(&mut self, frame_seq: u64, state: &PlantState) -> anyhow::Result<()> {
+        use std::io::Write;
+        let mut line = |event: &str| {
+            writeln!(
+                self.out,
+                "{frame_seq},{:.6},{event},{:.9},{:.9},{},{:.6}",
+                state.time_s,
+                state.position_m.x,
+                state.position_m.y,
+                state.contact_events,
+                state.contact_time_s
+            )
+        };
+        if state.contact_events > self.reported_events || (state.wall_contact && !self.touching) {
+            line("start")?;
+            if state.contact_events > self.reported_events + 1 {
+                tracing::debug!(frame_seq, "several wall contacts within one frame");
+            }
+        } else if !state.wall_contact && self.touching {
+            line("end")?;
+        }
+        self.reported_events = state.contact_events;
+        self.touching = state.wall_contact;
         Ok(())
     }
 

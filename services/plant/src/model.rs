@@ -2,8 +2,22 @@
 //! nominal model: true coil gains differ from nominal, coil currents lag their commands, drag
 //! has a quadratic form term, and the capsule turns toward the field with its own dynamics.
 //! One implementation, used by the plant service and by in-process experiment runs.
+//!
+//! Truth the controller never sees:
+//! - the true flow is the steady map × a pulsatile waveform + a slowly moving recirculation
+//!   vortex + spatially smooth, temporally correlated (Ornstein–Uhlenbeck) noise, all seeded
+//!   from the scenario seed (see [`crate::trueflow`]);
+//! - optional Coulomb floor friction (`floor_friction_coefficient` μ, default 0 = off): the
+//!   normal load is max((m − ρV)·g + the magnet's downward pull, 0) + `floor_extra_load_n`.
+//!   With the default rig parameters the capsule is slightly buoyant in the glycerol mix
+//!   (m = 50 mg < ρV ≈ 51 mg), so the load is only the magnet's pull toward the floor; friction
+//!   is off by default because neither the paper nor RIG.md quantifies it. Turn it on (e.g.
+//!   μ = 0.2 with a load of 1e-5 N) to study stiction; it is an impulse bounded by μ·N·h per
+//!   substep, so a weak pull is held exactly (static) and a strong one slides at (|F| − μN)/c_t;
+//! - wall contact is resolved with swept sub-moves no longer than a quarter of the capsule
+//!   radius, so no force or speed can carry the capsule through a wall; contacts are counted.
 
-use fieldmaps::coils::{CoilSystem, COIL_COUNT};
+use fieldmaps::coils::{CoilField, COIL_COUNT};
 use fieldmaps::flowmap::FlowMap;
 use fieldmaps::phantom::Phantom;
 use fieldmaps::physics;
@@ -13,6 +27,15 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
+
+use crate::trueflow::{FlowDisturbance, FlowNoiseConfig, FlowNoiseState, RecirculationConfig};
+
+/// Gravitational acceleration, m/s².
+const GRAVITY_MPS2: f64 = 9.81;
+/// Longest move between two wall checks, as a fraction of the capsule radius.
+const SWEEP_FRACTION_OF_RADIUS: f64 = 0.25;
+/// Upper bound on swept sub-moves per substep (a capsule this fast is already absurd).
+const MAX_SWEEP_MOVES: usize = 4096;
 
 /// `[plant]` physics knobs of a scenario.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -30,6 +53,14 @@ pub struct PlantPhysicsConfig {
     /// Amplitude of the pulsatile modulation of the steady flow (fraction of the steady value).
     pub pulsation_amplitude: f64,
     pub pulsation_hz: f64,
+    /// Coulomb friction coefficient μ against the phantom floor (0 disables friction).
+    pub floor_friction_coefficient: f64,
+    /// Extra normal load on the floor, N (e.g. a heavier capsule), added to the apparent weight.
+    pub floor_extra_load_n: f64,
+    /// Time-varying vortex in the recirculation zone (`[plant.physics.recirculation]`).
+    pub recirculation: RecirculationConfig,
+    /// Correlated flow noise (`[plant.physics.flow_noise]`).
+    pub flow_noise: FlowNoiseConfig,
 }
 
 impl Default for PlantPhysicsConfig {
@@ -41,6 +72,10 @@ impl Default for PlantPhysicsConfig {
             substep_ms: 0.5,
             pulsation_amplitude: 0.5,
             pulsation_hz: 3.0,
+            floor_friction_coefficient: 0.0,
+            floor_extra_load_n: 0.0,
+            recirculation: RecirculationConfig::default(),
+            flow_noise: FlowNoiseConfig::default(),
         }
     }
 }
@@ -55,28 +90,45 @@ pub struct PlantState {
     pub heading_rad: f64,
     /// Currents actually flowing in the coils (after the L/R lag).
     pub coil_currents_a: [f64; COIL_COUNT],
+    /// True when the capsule touched a wall at any substep of the last `step`.
     pub wall_contact: bool,
+    /// Number of contact onsets (free → touching transitions) since the start.
+    pub contact_events: u64,
+    /// Total time spent touching a wall, s.
+    pub contact_time_s: f64,
     pub last_magnetic_force_n: Vector2<f64>,
     pub last_true_flow_mps: Vector2<f64>,
+    /// Normal load on the floor at the last substep when friction is on (else 0), N.
+    pub last_floor_load_n: f64,
+    /// State of the correlated flow noise (seeded; part of the truth, never seen by control).
+    pub flow_noise: FlowNoiseState,
+    /// Contact state at the last substep (for onset counting).
+    touching: bool,
 }
 
 /// Everything fixed about the twin for one run.
 pub struct PlantModel {
-    pub coils: CoilSystem,
+    /// The true field model (the committed grid maps in the service; any `CoilField`).
+    pub coils: Box<dyn CoilField + Send + Sync>,
     pub robot: RobotParams,
     pub phantom: Phantom,
     pub steady_flow: FlowMap,
     pub config: PlantPhysicsConfig,
     /// True gain of each coil relative to its nominal map.
     pub coil_gains: [f64; COIL_COUNT],
+    /// Recirculation vortex and noise modes of the true flow.
+    pub disturbance: FlowDisturbance,
+    seed: u64,
     linear_drag_n_s_per_m: f64,
     quadratic_drag_n_s2_per_m2: f64,
     rotational_drag_n_m_s: f64,
+    /// Apparent weight on the floor (m − ρV)·g, N (may be negative: buoyant).
+    apparent_weight_n: f64,
 }
 
 impl PlantModel {
     pub fn new(
-        coils: CoilSystem,
+        coils: impl CoilField + Send + Sync + 'static,
         robot: RobotParams,
         fluid: &FluidParams,
         phantom: Phantom,
@@ -92,8 +144,7 @@ impl PlantModel {
             *g = 1.0 + gain_noise.sample(&mut rng);
         }
         let radius = robot.diameter_m / 2.0;
-        let linear =
-            physics::translational_damping(fluid.viscosity_pa_s, robot.length_m, radius);
+        let linear = physics::translational_damping(fluid.viscosity_pa_s, robot.length_m, radius);
         // Projected area of the capsule seen broadside and end-on, averaged.
         let area = 0.5 * (robot.diameter_m * robot.length_m)
             + 0.5 * std::f64::consts::PI * radius * radius;
@@ -101,18 +152,30 @@ impl PlantModel {
         // Slender-body rotational drag about a transverse axis: π μ L³ / (3 (ln(L/r) − 0.8)),
         // floored to stay finite for stubby bodies.
         let log_term = ((robot.length_m / radius).ln() - 0.8).max(0.1);
-        let rotational = std::f64::consts::PI * fluid.viscosity_pa_s * robot.length_m.powi(3)
-            / (3.0 * log_term);
+        let rotational =
+            std::f64::consts::PI * fluid.viscosity_pa_s * robot.length_m.powi(3) / (3.0 * log_term);
+        // Same displaced volume as the rig parameters' added mass (cylinder approximation).
+        let apparent_weight =
+            (robot.mass_kg - fluid.density_kg_m3 * robot.volume_m3()) * GRAVITY_MPS2;
+        let disturbance = FlowDisturbance::new(
+            &config.recirculation,
+            &config.flow_noise,
+            steady_flow.peak_speed(),
+            seed,
+        );
         Self {
-            coils,
+            coils: Box::new(coils),
             robot,
             phantom,
             steady_flow,
             config,
             coil_gains,
+            disturbance,
+            seed,
             linear_drag_n_s_per_m: linear,
             quadratic_drag_n_s2_per_m2: quadratic,
             rotational_drag_n_m_s: rotational,
+            apparent_weight_n: apparent_weight,
         }
     }
 
@@ -128,19 +191,52 @@ impl PlantModel {
             heading_rad,
             coil_currents_a: [0.0; COIL_COUNT],
             wall_contact: false,
+            contact_events: 0,
+            contact_time_s: 0.0,
             last_magnetic_force_n: Vector2::zeros(),
             last_true_flow_mps: Vector2::zeros(),
+            last_floor_load_n: 0.0,
+            flow_noise: self.disturbance.initial_noise(self.seed),
+            touching: false,
         }
     }
 
-    /// The true flow at `p` and time `t`: steady map times a pulsatile waveform.
+    /// Quadratic form-drag coefficient 0.5·ρ·C_d·A, N·s²/m².
+    pub fn quadratic_drag(&self) -> f64 {
+        self.quadratic_drag_n_s2_per_m2
+    }
+
+    /// The deterministic part of the true flow at `p` and time `t`: steady map × pulsatile
+    /// waveform + the recirculation vortex. [`Self::true_flow_with_noise`] adds the noise.
     pub fn true_flow(&self, p: &Vector2<f64>, t: f64) -> Vector2<f64> {
+        self.pulsatile_flow(p, t) + self.disturbance.recirculation(p, t)
+    }
+
+    /// The full true flow: [`Self::true_flow`] plus the correlated noise in `noise`.
+    pub fn true_flow_with_noise(
+        &self,
+        p: &Vector2<f64>,
+        t: f64,
+        noise: &FlowNoiseState,
+    ) -> Vector2<f64> {
+        let flow = self.true_flow(p, t);
+        if self.steady_flow.covers(p) {
+            flow + self.disturbance.noise(p, noise)
+        } else {
+            flow
+        }
+    }
+
+    /// Steady map times the pulsatile waveform.
+    pub fn pulsatile_flow(&self, p: &Vector2<f64>, t: f64) -> Vector2<f64> {
         let steady = self.steady_flow.sample(p);
         if steady == Vector2::zeros() {
             return steady;
         }
         // Peristaltic-like: a rectified sine whose mean is 1 and peak 1 + amplitude.
-        let phase = (std::f64::consts::PI * self.config.pulsation_hz * t).sin().abs();
+        let phase = (std::f64::consts::PI * self.config.pulsation_hz * t)
+            .sin()
+            .abs();
         let mean_of_abs_sine = 2.0 / std::f64::consts::PI;
         let a = self.config.pulsation_amplitude;
         steady * (1.0 + a * (phase - mean_of_abs_sine) / (1.0 - mean_of_abs_sine))
@@ -150,14 +246,22 @@ impl PlantModel {
         Vector3::new(heading.cos(), heading.sin(), 0.0) * self.robot.magnet_moment_am2
     }
 
-    /// Advances the state by `dt` with the given commanded coil currents.
+    /// Advances the state by `dt` with the given commanded coil currents. `wall_contact` then
+    /// tells whether the capsule touched a wall at any time during the step.
     pub fn step(&self, state: &mut PlantState, commanded_a: &[f64; COIL_COUNT], dt: f64) {
         let substep = (self.config.substep_ms * 1e-3).max(1e-5);
-        let n = ((dt / substep).ceil() as usize).max(1);
+        let n = if dt.is_finite() && dt > 0.0 {
+            ((dt / substep).ceil() as usize).max(1)
+        } else {
+            return;
+        };
         let h = dt / n as f64;
+        let mut any_contact = false;
         for _ in 0..n {
             self.substep(state, commanded_a, h);
+            any_contact |= state.touching;
         }
+        state.wall_contact = any_contact;
     }
 
     fn substep(&self, state: &mut PlantState, commanded_a: &[f64; COIL_COUNT], h: f64) {
@@ -184,12 +288,15 @@ impl PlantModel {
         let force3 = physics::magnetic_force(&moment, &gradient);
         let force = Vector2::new(force3.x, force3.y);
         let torque_z = physics::magnetic_torque(&moment, &field).z;
+        let pull_down_n = (-force3.z).max(0.0);
 
         // Alignment: overdamped rotation (inertia is negligible at these scales).
         let omega = torque_z / self.rotational_drag_n_m_s;
+        let heading_before = state.heading_rad;
         state.heading_rad = wrap_angle(state.heading_rad + (omega * h).clamp(-0.5, 0.5));
 
-        let flow = self.true_flow(&state.position_m, state.time_s);
+        self.disturbance.advance_noise(&mut state.flow_noise, h);
+        let flow = self.true_flow_with_noise(&state.position_m, state.time_s, &state.flow_noise);
         let relative = state.velocity_mps - flow;
         let quadratic = -relative * (self.quadratic_drag_n_s2_per_m2 * relative.norm());
         let mass = self.robot.mass_kg + self.robot.added_mass_kg;
@@ -197,11 +304,81 @@ impl PlantModel {
         let c = self.linear_drag_n_s_per_m;
         let explicit = force + quadratic + flow * c;
         state.velocity_mps = (state.velocity_mps + explicit * (h / mass)) / (1.0 + c * h / mass);
-        state.position_m += state.velocity_mps * h;
-        state.wall_contact = self.resolve_walls(state);
+        let mu = self.config.floor_friction_coefficient;
+        let normal_load = (self.apparent_weight_n + pull_down_n).max(0.0)
+            + self.config.floor_extra_load_n.max(0.0);
+        if mu > 0.0 {
+            // Coulomb friction as an impulse bounded by μ·N·h: it stops a slow capsule (static
+            // friction holds it) and never reverses a moving one.
+            let max_dv = mu * normal_load * h / mass;
+            let speed = state.velocity_mps.norm();
+            if speed <= max_dv {
+                state.velocity_mps = Vector2::zeros();
+            } else {
+                state.velocity_mps *= 1.0 - max_dv / speed;
+            }
+        }
+        if !(state.velocity_mps.x.is_finite() && state.velocity_mps.y.is_finite()) {
+            state.velocity_mps = Vector2::zeros();
+        }
+        let mut touching = self.sweep(state, h);
+        if touching && state.heading_rad != heading_before && self.penetration(state) > 1e-6 {
+            // Wedged: the walls block the turn (a capsule longer than the canal is wide).
+            state.heading_rad = heading_before;
+            touching |= self.resolve_walls(state);
+        }
+        state.last_floor_load_n = if mu > 0.0 { normal_load } else { 0.0 };
+        if touching {
+            if !state.touching {
+                state.contact_events += 1;
+            }
+            state.contact_time_s += h;
+        }
+        state.touching = touching;
+        state.wall_contact = touching;
         state.time_s += h;
         state.last_magnetic_force_n = force;
         state.last_true_flow_mps = flow;
+    }
+
+    /// Moves the capsule by `velocity·h` in sub-moves no longer than a quarter radius, resolving
+    /// the walls after each, so it cannot tunnel through a wall whatever its speed. True on
+    /// contact.
+    fn sweep(&self, state: &mut PlantState, h: f64) -> bool {
+        let radius = self.robot.diameter_m / 2.0;
+        let max_move = (SWEEP_FRACTION_OF_RADIUS * radius).max(1e-6);
+        let distance = state.velocity_mps.norm() * h;
+        let moves = ((distance / max_move).ceil() as usize).clamp(1, MAX_SWEEP_MOVES);
+        let mut contact = false;
+        let mut remaining = h;
+        for k in 0..moves {
+            let dt = remaining / (moves - k) as f64;
+            remaining -= dt;
+            // Never more than `max_move` per wall check, even past MAX_SWEEP_MOVES.
+            let mut delta = state.velocity_mps * dt;
+            let len = delta.norm();
+            if len > max_move {
+                delta *= max_move / len;
+            }
+            state.position_m += delta;
+            contact |= self.resolve_walls(state);
+        }
+        contact
+    }
+
+    /// Deepest penetration of the capsule's ends and middle into the wall, m (≤ 0: free).
+    pub fn penetration(&self, state: &PlantState) -> f64 {
+        let radius = self.robot.diameter_m / 2.0;
+        let half_axis = (self.robot.length_m / 2.0 - radius).max(0.0);
+        let axis = Vector2::new(state.heading_rad.cos(), state.heading_rad.sin());
+        [-half_axis, 0.0, half_axis]
+            .iter()
+            .map(|o| {
+                self.phantom
+                    .signed_distance(&(state.position_m + axis * *o))
+                    + radius
+            })
+            .fold(f64::NEG_INFINITY, f64::max)
     }
 
     /// Keeps both ends and the middle of the capsule inside the canal; returns true on contact.
@@ -239,7 +416,11 @@ impl PlantModel {
     }
 }
 
+/// Wraps to [−π, π); angles already in range are returned unchanged (bit for bit).
 pub fn wrap_angle(a: f64) -> f64 {
+    if (-std::f64::consts::PI..std::f64::consts::PI).contains(&a) {
+        return a;
+    }
     let two_pi = std::f64::consts::TAU;
     let mut x = (a + std::f64::consts::PI) % two_pi;
     if x < 0.0 {

@@ -25,6 +25,8 @@ const TELEMETRY_PERIOD: Duration = Duration::from_millis(50);
 #[derive(Debug, Clone)]
 pub struct TeensyOutputs {
     pub currents_a: [f64; COIL_COUNT],
+    /// Currents of the newest controller command (not a safe-zero, not the watchdog).
+    pub last_command_currents_a: [f64; COIL_COUNT],
     /// Frame of the newest controller command applied (`NO_FRAME` for none).
     pub last_command_frame: u64,
     pub watchdog_tripped: bool,
@@ -60,11 +62,15 @@ impl EmulatedTeensy {
         std::os::unix::fs::symlink(&slave_name, link_path)?;
         tracing::info!(pty = %slave_name, link = %link_path.display(), "emulated Teensy ready");
         let mut events = std::fs::File::create(events_path)?;
-        writeln!(events, "monotonic_ns,frame_seq,flags,max_abs_current_a,event")?;
+        writeln!(
+            events,
+            "monotonic_ns,frame_seq,flags,max_abs_current_a,event"
+        )?;
 
         let shared = Arc::new(Shared {
             outputs: Mutex::new(TeensyOutputs {
                 currents_a: [0.0; COIL_COUNT],
+                last_command_currents_a: [0.0; COIL_COUNT],
                 last_command_frame: NO_FRAME,
                 watchdog_tripped: true,
                 frames_received: 0,
@@ -105,7 +111,11 @@ impl EmulatedTeensy {
             if now >= deadline || self.shared.stop.load(Ordering::Relaxed) {
                 return (guard.clone(), false);
             }
-            guard = match self.shared.command_arrived.wait_timeout(guard, deadline - now) {
+            guard = match self
+                .shared
+                .command_arrived
+                .wait_timeout(guard, deadline - now)
+            {
                 Ok((g, _)) => g,
                 Err(poisoned) => poisoned.into_inner().0,
             };
@@ -145,12 +155,7 @@ fn log_event(events: &mut std::fs::File, frame_seq: u64, flags: u8, currents: &[
     );
 }
 
-fn serve(
-    port: &mut TTYPort,
-    shared: &Shared,
-    events: &mut std::fs::File,
-    watchdog: Duration,
-) {
+fn serve(port: &mut TTYPort, shared: &Shared, events: &mut std::fs::File, watchdog: Duration) {
     let mut decoder = Decoder::new();
     let mut buf = [0u8; 1024];
     let mut last_rx: Option<Instant> = None;
@@ -196,6 +201,7 @@ fn serve(
                 out.frames_received += 1;
                 if flags & FLAG_SAFE_ZERO == 0 {
                     out.last_command_frame = frame_seq;
+                    out.last_command_currents_a = currents;
                 }
             }
             shared.command_arrived.notify_all();

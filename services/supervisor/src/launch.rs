@@ -176,9 +176,11 @@ mod tests {
         let p = Path::new("l.toml");
         let err = LaunchFile::parse("[[process]]\nname = \"camera9\"\n", p).unwrap_err();
         assert!(err.to_string().contains("unknown process name"), "{err}");
-        let err =
-            LaunchFile::parse("[[process]]\nname = \"plant\"\n[[process]]\nname = \"plant\"\n", p)
-                .unwrap_err();
+        let err = LaunchFile::parse(
+            "[[process]]\nname = \"plant\"\n[[process]]\nname = \"plant\"\n",
+            p,
+        )
+        .unwrap_err();
         assert!(err.to_string().contains("twice"), "{err}");
         let err = LaunchFile::parse("[[process]]\nnme = \"plant\"\n", p).unwrap_err();
         assert!(err.to_string().contains("nme"), "{err}");

@@ -153,7 +153,10 @@ impl Supervisor {
         let pid = child.id();
         std::fs::create_dir_all(self.options.run_dir.join("pids"))?;
         std::fs::write(
-            self.options.run_dir.join("pids").join(format!("{name}.pid")),
+            self.options
+                .run_dir
+                .join("pids")
+                .join(format!("{name}.pid")),
             pid.to_string(),
         )?;
         let now = Instant::now();
@@ -220,7 +223,10 @@ impl Supervisor {
             self.events.record(
                 id,
                 "cleanup_dead_nodes",
-                &format!("cleaned={} failed={}", cleanup.cleanups, cleanup.failed_cleanups),
+                &format!(
+                    "cleaned={} failed={}",
+                    cleanup.cleanups, cleanup.failed_cleanups
+                ),
             );
         }
         Ok(run_complete)
@@ -278,8 +284,8 @@ impl Supervisor {
 
 /// Starts a Rerun viewer when asked (or when `auto` and one is usable); returns its gRPC URL.
 fn start_viewer(mode: ViewerMode) -> anyhow::Result<Option<(Child, String)>> {
-    let has_display = std::env::var_os("DISPLAY").is_some()
-        || std::env::var_os("WAYLAND_DISPLAY").is_some();
+    let has_display =
+        std::env::var_os("DISPLAY").is_some() || std::env::var_os("WAYLAND_DISPLAY").is_some();
     let wanted = match mode {
         ViewerMode::None => false,
         ViewerMode::Spawn => true,
@@ -303,7 +309,10 @@ fn start_viewer(mode: ViewerMode) -> anyhow::Result<Option<(Child, String)>> {
         .context("spawning the Rerun viewer")?;
     // Give the viewer a moment to open its port before the services connect.
     std::thread::sleep(Duration::from_millis(1500));
-    Ok(Some((child, format!("rerun+http://127.0.0.1:{port}/proxy"))))
+    Ok(Some((
+        child,
+        format!("rerun+http://127.0.0.1:{port}/proxy"),
+    )))
 }
 
 /// Finds an executable on PATH.
@@ -380,7 +389,10 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
     }
     let recording_id = format!(
         "millinav-{}-{}",
-        run_dir.file_name().and_then(|n| n.to_str()).unwrap_or("run"),
+        run_dir
+            .file_name()
+            .and_then(|n| n.to_str())
+            .unwrap_or("run"),
         clock::wall_ns()
     );
     let viewer = start_viewer(options.viewer)?;
@@ -447,7 +459,10 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
     // A stale set from an earlier crashed run with the same prefix must not confuse this one.
     let cleanup = rt.node.try_cleanup_dead_nodes();
     if cleanup.cleanups > 0 {
-        tracing::info!(cleaned = cleanup.cleanups, "removed resources of dead nodes");
+        tracing::info!(
+            cleaned = cleanup.cleanups,
+            "removed resources of dead nodes"
+        );
     }
     let listeners: Vec<(ServiceId, Listener<ipc::Service>)> = supervisor
         .processes
@@ -564,7 +579,8 @@ fn monitor(
             }
         }
         supervisor.restart_due()?;
-        rt.rec.set_duration_secs(recording::RUN_TIMELINE, rt.env.run_clock_ns() as f64 * 1e-9);
+        rt.rec
+            .set_duration_secs(recording::RUN_TIMELINE, rt.env.run_clock_ns() as f64 * 1e-9);
         for (service, beat) in &latest_health {
             if let Some(id) = ServiceId::from_u32(*service) {
                 recording::scalar(

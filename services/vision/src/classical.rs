@@ -39,7 +39,9 @@ pub struct Detection {
 pub enum LocalizeError {
     #[error("no robot-coloured blob in the search region")]
     NotFound,
-    #[error("blob area {area_px:.0} px is implausible for the capsule (expected ≈{expected_px:.0})")]
+    #[error(
+        "blob area {area_px:.0} px is implausible for the capsule (expected ≈{expected_px:.0})"
+    )]
     ImplausibleArea { area_px: f64, expected_px: f64 },
     #[error("tip and tail cannot be told apart (magnet not visible)")]
     Ambiguous,
@@ -108,7 +110,8 @@ impl ClassicalLocalizer {
             cv::Point::new(rect.0, rect.1),
         )?;
         let px_per_m = 1e3 / mm_per_px;
-        let expected_px = (self.size.length_m - self.size.diameter_m) * self.size.diameter_m
+        let expected_px = (self.size.length_m - self.size.diameter_m)
+            * self.size.diameter_m
             * px_per_m
             * px_per_m
             + std::f64::consts::PI * (self.size.diameter_m * px_per_m / 2.0).powi(2);

@@ -154,7 +154,8 @@ pub fn evaluate_classical(classical: &ClassicalLocalizer, split: &Split) -> Repo
             t.with_robot += 1;
             if let Ok((d, _)) = &result {
                 t.found += 1;
-                t.centroid.push(dist(d.centroid_px, label.centroid) * mm_per_input_px);
+                t.centroid
+                    .push(dist(d.centroid_px, label.centroid) * mm_per_input_px);
                 t.tip.push(dist(d.tip_px, label.tip) * mm_per_input_px);
             }
         } else {

@@ -71,7 +71,9 @@ pub fn resolve_model(config: &VisionConfig, scenario: &Scenario) -> PathBuf {
     if config.model.is_absolute() {
         return config.model.clone();
     }
-    let from_root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(&config.model);
+    let from_root = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join(&config.model);
     if from_root.exists() {
         return from_root;
     }
@@ -102,8 +104,14 @@ impl Pipeline {
             LocalizerKind::Unet => {
                 let runtime = find_onnxruntime(config.onnxruntime.as_deref())?;
                 let model = resolve_model(config, scenario);
-                let mm_per_px = shm_schemas::FRAME_FIELD_OF_VIEW_MM / shm_schemas::FRAME_WIDTH as f64;
-                Some(UnetLocalizer::load(&model, &runtime, size.length_m * 1e3, mm_per_px)?)
+                let mm_per_px =
+                    shm_schemas::FRAME_FIELD_OF_VIEW_MM / shm_schemas::FRAME_WIDTH as f64;
+                Some(UnetLocalizer::load(
+                    &model,
+                    &runtime,
+                    size.length_m * 1e3,
+                    mm_per_px,
+                )?)
             }
         };
         Ok(Self {
@@ -115,7 +123,13 @@ impl Pipeline {
     }
 
     /// Localizes the capsule in one RGB frame.
-    pub fn process(&mut self, rgb: &[u8], width: usize, height: usize, mm_per_px: f64) -> FrameResult {
+    pub fn process(
+        &mut self,
+        rgb: &[u8],
+        width: usize,
+        height: usize,
+        mm_per_px: f64,
+    ) -> FrameResult {
         let (w, h) = (width as i32, height as i32);
         let roi_px = (self.roi_mm / mm_per_px).round() as i32;
         let mut result = FrameResult {
@@ -332,12 +346,15 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             Ok(PixelFormat::Rgb8) => {
                 let (w, h) = (header.width as i32, header.height as i32);
                 if header.stride != header.width * 3 {
-                    tracing::warn!("padded frames are not supported; frame {} dropped", header.seq);
+                    tracing::warn!(
+                        "padded frames are not supported; frame {} dropped",
+                        header.seq
+                    );
                     invalid_pose(&header)
                 } else {
                     let result = pipeline.process(rgb, w as usize, h as usize, header.mm_per_px);
-                    let log_image = config.image_log_every > 0
-                        && header.seq % config.image_log_every == 0;
+                    let log_image =
+                        config.image_log_every > 0 && header.seq % config.image_log_every == 0;
                     recording::set_time(&rt.rec, header.capture_time_ns, header.seq);
                     let mask = result.classical_mask.as_ref().map(|(m, r)| (m, *r));
                     match &result.detection {
@@ -348,7 +365,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                         }
                         Err(why) => {
                             lost_frames += 1;
-                            if lost_frames == 1 || lost_frames % 100 == 0 {
+                            if lost_frames == 1 || lost_frames.is_multiple_of(100) {
                                 tracing::warn!(seq = header.seq, "no pose: {why}");
                             }
                             log_frame(&rt.rec, &header, rgb, None, None, log_image);
@@ -358,7 +375,10 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                 }
             }
             Ok(other) => {
-                tracing::warn!("unsupported pixel format {other:?}; frame {} dropped", header.seq);
+                tracing::warn!(
+                    "unsupported pixel format {other:?}; frame {} dropped",
+                    header.seq
+                );
                 invalid_pose(&header)
             }
             Err(why) => {

@@ -29,7 +29,10 @@ pub fn find_onnxruntime(explicit: Option<&Path>) -> Result<PathBuf, UnetError> {
         return if path.is_file() {
             Ok(path.to_owned())
         } else {
-            Err(UnetError::MissingRuntime(format!("{} is not a file", path.display())))
+            Err(UnetError::MissingRuntime(format!(
+                "{} is not a file",
+                path.display()
+            )))
         };
     }
     if let Some(path) = std::env::var_os("ORT_DYLIB_PATH") {
@@ -38,9 +41,11 @@ pub fn find_onnxruntime(explicit: Option<&Path>) -> Result<PathBuf, UnetError> {
             return Ok(path);
         }
     }
-    let venv = std::env::var_os("MILLINAV_VENV").map(PathBuf::from).unwrap_or_else(|| {
-        PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/millinav/venv")
-    });
+    let venv = std::env::var_os("MILLINAV_VENV")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/millinav/venv")
+        });
     let lib = venv.join("lib");
     let candidates = std::fs::read_dir(&lib)
         .into_iter()
@@ -82,7 +87,12 @@ pub struct UnetOutput {
 
 impl UnetLocalizer {
     /// Loads the model and checks it has the input and outputs this pipeline expects.
-    pub fn load(model: &Path, runtime: &Path, capsule_length_mm: f64, mm_per_px: f64) -> Result<Self, UnetError> {
+    pub fn load(
+        model: &Path,
+        runtime: &Path,
+        capsule_length_mm: f64,
+        mm_per_px: f64,
+    ) -> Result<Self, UnetError> {
         if !model.is_file() {
             return Err(UnetError::MissingModel(model.to_owned()));
         }
@@ -131,7 +141,9 @@ impl UnetLocalizer {
             session,
             rgb: Vec::new(),
             input: Vec::new(),
-            expected_length_px: capsule_length_mm / mm_per_px / millinav_unet::roi::DOWNSAMPLE as f64,
+            expected_length_px: capsule_length_mm
+                / mm_per_px
+                / millinav_unet::roi::DOWNSAMPLE as f64,
         })
     }
 
@@ -146,11 +158,17 @@ impl UnetLocalizer {
             .run(ort::inputs![TensorRef::from_array_view(view).map_err(err)?])
             .map_err(err)?;
         let (_, seg) = outputs["seg"].try_extract_tensor::<f32>().map_err(err)?;
-        let (_, kp) = outputs["keypoints"].try_extract_tensor::<f32>().map_err(err)?;
-        let (_, presence) = outputs["presence"].try_extract_tensor::<f32>().map_err(err)?;
+        let (_, kp) = outputs["keypoints"]
+            .try_extract_tensor::<f32>()
+            .map_err(err)?;
+        let (_, presence) = outputs["presence"]
+            .try_extract_tensor::<f32>()
+            .map_err(err)?;
         let n = INPUT_PX * INPUT_PX;
         if seg.len() != 2 * n || kp.len() != 6 || presence.is_empty() {
-            return Err(LocalizeError::OpenCv("model outputs have unexpected sizes".into()));
+            return Err(LocalizeError::OpenCv(
+                "model outputs have unexpected sizes".into(),
+            ));
         }
         let mask = (0..n).map(|i| u8::from(seg[n + i] > seg[i])).collect();
         let k = |i: usize| (kp[2 * i] as f64, kp[2 * i + 1] as f64);
@@ -181,7 +199,11 @@ impl UnetLocalizer {
 }
 
 /// Turns model outputs into a detection in frame pixels, or says why there is none.
-pub fn detection_from_output(out: &UnetOutput, crop: &Crop, expected_length_px: f64) -> Result<Detection, LocalizeError> {
+pub fn detection_from_output(
+    out: &UnetOutput,
+    crop: &Crop,
+    expected_length_px: f64,
+) -> Result<Detection, LocalizeError> {
     if out.presence_logit < 0.0 {
         return Err(LocalizeError::NotFound);
     }

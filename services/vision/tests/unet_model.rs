@@ -20,7 +20,8 @@ fn load(model: &Path) -> Result<UnetLocalizer, UnetError> {
 #[test]
 fn committed_model_meets_accuracy_floors() {
     let split = Split::load(&root().join("tools/unet/testset")).expect("committed test set");
-    let mut unet = load(&root().join(millinav_vision::DEFAULT_MODEL)).expect("committed model loads");
+    let mut unet =
+        load(&root().join(millinav_vision::DEFAULT_MODEL)).expect("committed model loads");
     let size = CapsuleSize::default();
     let expected = size.length_m * 1e3 / split.labels[0].mm_per_px / 2.0;
     let report = evaluate_unet(&mut unet, &split, expected);
@@ -29,14 +30,28 @@ fn committed_model_meets_accuracy_floors() {
     assert!(report.precision >= 0.987, "precision {}", report.precision);
     assert!(report.recall >= 0.983, "recall {}", report.recall);
     assert!(report.iou >= 0.971, "IoU {}", report.iou);
-    assert!(report.detection_rate >= 0.99, "detected {}", report.detection_rate);
-    assert!(report.false_detection_rate <= 0.05, "false detections {}", report.false_detection_rate);
-    assert!(report.centroid_err_mm_median < 0.2, "centroid {}", report.centroid_err_mm_median);
+    assert!(
+        report.detection_rate >= 0.99,
+        "detected {}",
+        report.detection_rate
+    );
+    assert!(
+        report.false_detection_rate <= 0.05,
+        "false detections {}",
+        report.false_detection_rate
+    );
+    assert!(
+        report.centroid_err_mm_median < 0.2,
+        "centroid {}",
+        report.centroid_err_mm_median
+    );
 }
 
 #[test]
 fn missing_model_is_a_clear_start_up_error() {
-    let err = load(Path::new("/nonexistent/model.onnx")).err().expect("must fail");
+    let err = load(Path::new("/nonexistent/model.onnx"))
+        .err()
+        .expect("must fail");
     assert!(matches!(err, UnetError::MissingModel(_)), "{err}");
     assert!(err.to_string().contains("does not exist"), "{err}");
 }

@@ -21,7 +21,10 @@ enum Command {
 }
 
 fn main() -> anyhow::Result<()> {
-    tracing_subscriber::fmt().with_writer(std::io::stderr).with_target(false).init();
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
     match Cli::parse().command {
         Command::Coils(args) => fieldgen::coils::run(&args),
         Command::Cfd(args) => fieldgen::cfd::run(&args),

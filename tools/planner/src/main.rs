@@ -1,4 +1,132 @@
-//! `planner` (being written).
+//! `planner`: the paper's A* pipeline on the canal mask → a trajectory file.
+//!
+//! planner [--mask mask.png] [--start-mm X,Y] [--end-mm X,Y] [-o trajectory.toml]
+//!         [--scenario-template scenarios/default.toml] [--speed-mm-s 0.5]
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+use fieldmaps::phantom::{ImageGeometry, Phantom};
+use millinav_planner::{
+    geometry_for, plan, scenario_with_plan, trajectory_toml, Mask, PlannerConfig,
+};
+use nalgebra::Vector2;
+
+#[derive(Parser, Debug)]
+#[command(about = "A* path planner (paper Sec. II-C): canal mask -> trajectory waypoints")]
+struct Args {
+    /// Canal mask image (white = canal). Default: the fieldmaps phantom rasterized on the
+    /// 1020x1020 px / 92 mm top view.
+    #[arg(long)]
+    mask: Option<PathBuf>,
+    /// mm per pixel of --mask (default: the top camera's 92/1020); the image is centred on the origin.
+    #[arg(long)]
+    mm_per_px: Option<f64>,
+    /// Start point "x,y" in mm (default: the phantom's default start).
+    #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
+    start_mm: Option<[f64; 2]>,
+    /// End point "x,y" in mm (default: the phantom's default end).
+    #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
+    end_mm: Option<[f64; 2]>,
+    /// Minimum wall clearance, mm.
+    #[arg(long, default_value_t = 5.0)]
+    clearance_mm: f64,
+    /// Centerline bias weight.
+    #[arg(long, default_value_t = 0.5)]
+    w_clear: f64,
+    /// Moving-average window.
+    #[arg(long, default_value_t = 7)]
+    window: usize,
+    /// Number of output waypoints.
+    #[arg(long, default_value_t = 10)]
+    waypoints: usize,
+    /// Reference speed to write into the trajectory (omitted if not given).
+    #[arg(long)]
+    speed_mm_s: Option<f64>,
+    /// Write a full scenario: this scenario file with its trajectory replaced.
+    #[arg(long)]
+    scenario_template: Option<PathBuf>,
+    /// Output file (default: stdout).
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+}
+
+fn parse_point(s: &str) -> Result<[f64; 2], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [x, y] = parts.as_slice() else {
+        return Err(format!("expected \"x,y\" in mm, got {s:?}"));
+    };
+    let x: f64 = x.parse().map_err(|e| format!("x: {e}"))?;
+    let y: f64 = y.parse().map_err(|e| format!("y: {e}"))?;
+    if !(x.is_finite() && y.is_finite()) {
+        return Err("coordinates must be finite".into());
+    }
+    Ok([x, y])
+}
+
 fn main() -> anyhow::Result<()> {
-    anyhow::bail!("planner is not built yet")
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .init();
+    let args = Args::parse();
+    let phantom = Phantom::default_heart();
+    let (mask, geom) = match &args.mask {
+        None => {
+            let geom = ImageGeometry::default();
+            (Mask::from_phantom(&phantom, &geom)?, geom)
+        }
+        Some(path) => {
+            let mask = Mask::load(path)?;
+            let mpp = args.mm_per_px.unwrap_or(ImageGeometry::default().mm_per_px);
+            let geom = geometry_for(mask.width, mask.height, mpp);
+            (mask, geom)
+        }
+    };
+    let to_m = |p: [f64; 2]| Vector2::new(p[0], p[1]) * 1e-3;
+    let start = args.start_mm.map(to_m).unwrap_or(phantom.default_start());
+    let end = args.end_mm.map(to_m).unwrap_or(phantom.default_end());
+    let config = PlannerConfig {
+        clearance_m: args.clearance_mm * 1e-3,
+        w_clear: args.w_clear,
+        smoothing_window: args.window,
+        waypoint_count: args.waypoints,
+    };
+    let plan = plan(&mask, &geom, &start, &end, &config)?;
+    tracing::info!(
+        start_px = ?plan.start_px,
+        end_px = ?plan.end_px,
+        astar_pixels = plan.pixel_path.len(),
+        astar_cost = plan.cost,
+        smoothed_length_mm = plan.smoothed_length_m * 1e3,
+        waypoint_length_mm = plan.waypoint_length_m() * 1e3,
+        "planned"
+    );
+    let text = match &args.scenario_template {
+        Some(path) => {
+            let template = std::fs::read_to_string(path)
+                .with_context(|| format!("reading scenario template {}", path.display()))?;
+            scenario_with_plan(&template, &plan, args.speed_mm_s)?
+        }
+        None => format!(
+            "# millinav-planner: A* on the canal mask, {:.1} mm clearance, w_clear {}, window {},\n\
+             # start ({:.2}, {:.2}) mm -> end ({:.2}, {:.2}) mm, path length {:.2} mm\n{}",
+            config.clearance_m * 1e3,
+            config.w_clear,
+            config.smoothing_window,
+            start.x * 1e3,
+            start.y * 1e3,
+            end.x * 1e3,
+            end.y * 1e3,
+            plan.waypoint_length_m() * 1e3,
+            trajectory_toml(&plan, args.speed_mm_s)
+        ),
+    };
+    match &args.output {
+        Some(path) => {
+            std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?
+        }
+        None => print!("{text}"),
+    }
+    Ok(())
 }

@@ -2,8 +2,8 @@
 //! - `images.u8`: N x INPUT_PX x INPUT_PX x 3 raw RGB (model input after ROI preprocessing);
 //! - `masks.u8`: N x INPUT_PX x INPUT_PX, 1 = capsule, 0 = background;
 //! - `labels.csv`: one row per sample, keypoints in model-input pixel coordinates;
-//! - `frames/` (optional): full frames are not stored, only what the model sees.
-//! Raw arrays load with `numpy.fromfile(..., dtype=uint8).reshape(...)`.
+//!
+//! Full frames are not stored, only what the model sees. Raw arrays load with `numpy.fromfile(..., dtype=uint8).reshape(...)`.
 
 use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};

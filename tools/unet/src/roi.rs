@@ -66,8 +66,8 @@ pub fn extract_rgb(frame: &[u8], width: usize, crop: &Crop, out: &mut Vec<u8>) {
                 let base = (row * width + crop.col0 + x * f) * 3;
                 for dx in 0..f {
                     let i = base + dx * 3;
-                    for c in 0..3 {
-                        acc[c] += frame.get(i + c).copied().unwrap_or(0) as u32;
+                    for (c, a) in acc.iter_mut().enumerate() {
+                        *a += frame.get(i + c).copied().unwrap_or(0) as u32;
                     }
                 }
             }
@@ -117,7 +117,13 @@ mod tests {
     #[test]
     fn crop_is_clamped_and_coordinates_round_trip() {
         let crop = Crop::around(10.0, 1000.0, 1020, 1020).unwrap();
-        assert_eq!(crop, Crop { col0: 0, row0: 1020 - CROP_PX });
+        assert_eq!(
+            crop,
+            Crop {
+                col0: 0,
+                row0: 1020 - CROP_PX
+            }
+        );
         let (x, y) = crop.frame_to_input(57.3, 900.2);
         let (c, r) = crop.input_to_frame(x, y);
         assert!((c - 57.3).abs() < 1e-9 && (r - 900.2).abs() < 1e-9);

@@ -26,9 +26,14 @@ struct Args {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let split = Split::load(&args.split).with_context(|| format!("loading {}", args.split.display()))?;
+    let split =
+        Split::load(&args.split).with_context(|| format!("loading {}", args.split.display()))?;
     let size = CapsuleSize::default();
-    let mm_per_px = split.labels.first().map(|l| l.mm_per_px).context("empty split")?;
+    let mm_per_px = split
+        .labels
+        .first()
+        .map(|l| l.mm_per_px)
+        .context("empty split")?;
     let runtime = find_onnxruntime(args.onnxruntime.as_deref())?;
     let mut unet = UnetLocalizer::load(&args.model, &runtime, size.length_m * 1e3, mm_per_px)?;
     let expected = size.length_m * 1e3 / mm_per_px / millinav_unet::roi::DOWNSAMPLE as f64;

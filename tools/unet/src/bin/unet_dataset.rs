@@ -40,25 +40,44 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let phantom = Phantom::default_heart();
-    for (offset, (name, count)) in [("train", args.train), ("val", args.val), ("test", args.test)]
-        .into_iter()
-        .enumerate()
+    for (offset, (name, count)) in [
+        ("train", args.train),
+        ("val", args.val),
+        ("test", args.test),
+    ]
+    .into_iter()
+    .enumerate()
     {
         if count == 0 {
             continue;
         }
-        let split = export_split(&phantom, count, args.seed + offset as u64, args.cameras.max(1), name)?;
+        let split = export_split(
+            &phantom,
+            count,
+            args.seed + offset as u64,
+            args.cameras.max(1),
+            name,
+        )?;
         let dir = args.out.join(name);
-        split.save(&dir).with_context(|| format!("writing {}", dir.display()))?;
+        split
+            .save(&dir)
+            .with_context(|| format!("writing {}", dir.display()))?;
         eprintln!("{name}: {} samples in {}", split.len(), dir.display());
     }
     Ok(())
 }
 
 /// A random pose with the whole capsule inside the canal.
-fn random_pose(phantom: &Phantom, rng: &mut ChaCha8Rng, robot: &RobotParams) -> (Vector2<f64>, f64) {
+fn random_pose(
+    phantom: &Phantom,
+    rng: &mut ChaCha8Rng,
+    robot: &RobotParams,
+) -> (Vector2<f64>, f64) {
     loop {
-        let p = Vector2::new(rng.random_range(-0.044..0.044), rng.random_range(-0.044..0.044));
+        let p = Vector2::new(
+            rng.random_range(-0.044..0.044),
+            rng.random_range(-0.044..0.044),
+        );
         let heading: f64 = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
         let axis = Vector2::new(heading.cos(), heading.sin());
         let half = robot.length_m / 2.0 - robot.radius_m();
@@ -135,13 +154,20 @@ fn blur_region(frame: &mut [u8], width: usize, height: usize, crop: &Crop, w: f3
     for r in 0..rh {
         for c in 0..rw {
             for ch in 0..3 {
-                frame[((r0 + r) * width + c0 + c) * 3 + ch] = buf[(r * rw + c) * 3 + ch].round().clamp(0.0, 255.0) as u8;
+                frame[((r0 + r) * width + c0 + c) * 3 + ch] =
+                    buf[(r * rw + c) * 3 + ch].round().clamp(0.0, 255.0) as u8;
             }
         }
     }
 }
 
-fn export_split(phantom: &Phantom, count: usize, seed: u64, cameras: usize, name: &str) -> anyhow::Result<Split> {
+fn export_split(
+    phantom: &Phantom,
+    count: usize,
+    seed: u64,
+    cameras: usize,
+    name: &str,
+) -> anyhow::Result<Split> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let geometry = ImageGeometry::default();
     let (width, height) = (geometry.width_px as usize, geometry.height_px as usize);
@@ -167,7 +193,14 @@ fn export_split(phantom: &Phantom, count: usize, seed: u64, cameras: usize, name
         let cam = &cams[rng.random_range(0..cams.len())];
         let (position, heading) = random_pose(phantom, &mut rng, &robot);
         frame.copy_from_slice(cam.background(rng.random_range(0..4)));
-        cam.draw_capsule(&mut frame, &position, heading, robot.length_m, robot.diameter_m, &mut rng);
+        cam.draw_capsule(
+            &mut frame,
+            &position,
+            heading,
+            robot.length_m,
+            robot.diameter_m,
+            &mut rng,
+        );
         let keypoints = cam.keypoints(&position, heading, robot.length_m);
         // 8 % of the crops look at empty canal: the model must say "no robot".
         let has_robot = rng.random_range(0.0..1.0) > 0.08;
@@ -187,7 +220,14 @@ fn export_split(phantom: &Phantom, count: usize, seed: u64, cameras: usize, name
         let crop = Crop::around(centre_col, centre_row, width, height).context("crop")?;
         if rng.random_range(0.0..1.0) < 0.6 {
             let passes = rng.random_range(1..3);
-            blur_region(&mut frame, width, height, &crop, rng.random_range(0.05..0.25), passes);
+            blur_region(
+                &mut frame,
+                width,
+                height,
+                &crop,
+                rng.random_range(0.05..0.25),
+                passes,
+            );
         }
         mask.iter_mut().for_each(|m| *m = 0);
         if has_robot {

@@ -1,0 +1,61 @@
+//! Shared helpers of the plant's integration tests.
+#![allow(dead_code)]
+
+use fieldmaps::coils::{CoilSystem, COIL_COUNT};
+use fieldmaps::flowmap::FlowMap;
+use fieldmaps::phantom::Phantom;
+use fieldmaps::rig::{FluidParams, RobotParams};
+use millinav_plant::model::{PlantModel, PlantPhysicsConfig};
+use nalgebra::Vector2;
+
+pub const FRAME_S: f64 = 0.01;
+
+pub fn fluid() -> FluidParams {
+    FluidParams {
+        viscosity_pa_s: 0.02,
+        density_kg_m3: FluidParams::GLYCERIN_WATER_DENSITY,
+    }
+}
+
+/// A smooth swirl (|v| ≈ 4 mm/s at 20 mm from the origin) covering the view.
+pub fn swirl_map() -> FlowMap {
+    let (nx, ny, h) = (21, 21, 0.005);
+    let origin = Vector2::new(-0.05, -0.05);
+    let mut velocity = Vec::with_capacity(nx * ny);
+    for j in 0..ny {
+        for i in 0..nx {
+            let p = origin + Vector2::new(i as f64, j as f64) * h;
+            velocity.push(Vector2::new(-p.y, p.x) * 0.2);
+        }
+    }
+    FlowMap {
+        nx,
+        ny,
+        origin_m: origin,
+        spacing_m: h,
+        velocity_mps: velocity,
+    }
+}
+
+pub fn model(flow: FlowMap, config: PlantPhysicsConfig, seed: u64) -> PlantModel {
+    PlantModel::new(
+        CoilSystem::paper_rig(),
+        RobotParams::default(),
+        &fluid(),
+        Phantom::default_heart(),
+        flow,
+        config,
+        seed,
+    )
+}
+
+/// Start in the right atrium with room all around (≈ 7 mm from the wall).
+pub fn ra_start() -> Vector2<f64> {
+    Vector2::new(-0.016, 0.010)
+}
+
+pub fn currents(value: f64, coil: usize) -> [f64; COIL_COUNT] {
+    let mut c = [0.0; COIL_COUNT];
+    c[coil % COIL_COUNT] = value;
+    c
+}

@@ -1,0 +1,254 @@
+//! Sanity of the twin's physics: no motion without cause, terminal velocity F/c_t, friction,
+//! walls (contact reported, no tunnelling), determinism for a seed.
+
+mod common;
+
+use common::*;
+use fieldmaps::coils::COIL_COUNT;
+use fieldmaps::flowmap::FlowMap;
+use millinav_plant::model::{PlantModel, PlantPhysicsConfig, PlantState};
+use nalgebra::Vector2;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn linear_only() -> PlantPhysicsConfig {
+    PlantPhysicsConfig {
+        form_drag_coefficient: 0.0,
+        ..Default::default()
+    }
+}
+
+#[test]
+fn no_motion_without_current_or_flow() {
+    for friction in [0.0, 0.3] {
+        let config = PlantPhysicsConfig {
+            floor_friction_coefficient: friction,
+            ..Default::default()
+        };
+        let m = model(FlowMap::zero(), config, 11);
+        let start = m.initial_state(ra_start(), 0.7);
+        let mut s = start.clone();
+        for _ in 0..500 {
+            m.step(&mut s, &[0.0; COIL_COUNT], FRAME_S);
+        }
+        assert!((s.time_s - 5.0).abs() < 1e-9);
+        assert_eq!(
+            s.position_m, start.position_m,
+            "drifted with friction {friction}"
+        );
+        assert_eq!(s.velocity_mps, Vector2::zeros());
+        assert_eq!(s.heading_rad, start.heading_rad);
+        assert_eq!(s.last_true_flow_mps, Vector2::zeros());
+        assert!(!s.wall_contact);
+        assert_eq!(s.contact_events, 0);
+    }
+}
+
+#[test]
+fn terminal_velocity_is_force_over_linear_drag() {
+    let m = model(FlowMap::zero(), linear_only(), 1);
+    let mut s = m.initial_state(ra_start(), 0.3);
+    // A weak pull: the capsule aligns, then drifts slowly enough that the force is steady.
+    for _ in 0..200 {
+        m.step(&mut s, &currents(0.02, 9), FRAME_S);
+    }
+    let expected = s.last_magnetic_force_n / m.linear_drag();
+    let rel = (s.velocity_mps - expected).norm() / expected.norm();
+    println!(
+        "terminal: |v| {:.4e} m/s, |F|/c_t {:.4e} m/s, relative error {rel:.4}",
+        s.velocity_mps.norm(),
+        expected.norm()
+    );
+    assert!(expected.norm() > 1e-4, "test needs a real force");
+    assert!(rel < 0.01, "relative error {rel}");
+}
+
+#[test]
+fn coulomb_friction_holds_a_weak_pull_and_slows_a_strong_one() {
+    let with = |mu: f64, load: f64| {
+        model(
+            FlowMap::zero(),
+            PlantPhysicsConfig {
+                floor_friction_coefficient: mu,
+                floor_extra_load_n: load,
+                ..linear_only()
+            },
+            1,
+        )
+    };
+    // Negligible friction: measures the force and the floor load (apparent weight + the
+    // magnet's downward pull) of this pose.
+    let probe_model = with(1e-15, 0.0);
+    let mut probe = probe_model.initial_state(ra_start(), 0.3);
+    for _ in 0..200 {
+        probe_model.step(&mut probe, &currents(0.02, 9), FRAME_S);
+    }
+    let force = probe.last_magnetic_force_n.norm();
+    let base_load = probe.last_floor_load_n;
+    println!("friction: |F| {force:.3e} N, floor load without extra {base_load:.3e} N");
+
+    // Static: μN ≥ 2|F| never lets it go.
+    let mu = 0.5;
+    let stuck = with(mu, (2.0 * force / mu - base_load).max(0.0));
+    let mut s = probe.clone();
+    s.velocity_mps = Vector2::zeros();
+    let held = s.position_m;
+    for _ in 0..100 {
+        stuck.step(&mut s, &currents(0.02, 9), FRAME_S);
+    }
+    assert_eq!(s.position_m, held);
+
+    // Sliding: μN = |F|/2 halves the terminal speed.
+    let extra = base_load.max(force);
+    let mu = 0.5 * force / (base_load + extra);
+    let sliding = with(mu, extra);
+    let mut s = probe.clone();
+    for _ in 0..100 {
+        sliding.step(&mut s, &currents(0.02, 9), FRAME_S);
+    }
+    let expected =
+        (s.last_magnetic_force_n.norm() - mu * s.last_floor_load_n) / sliding.linear_drag();
+    let rel = (s.velocity_mps.norm() - expected).abs() / expected;
+    println!(
+        "friction: |v| {:.4e} m/s vs (|F| − μN)/c_t {:.4e} m/s",
+        s.velocity_mps.norm(),
+        expected
+    );
+    assert!(rel < 0.03, "relative error {rel}");
+}
+
+fn assert_inside(m: &PlantModel, s: &PlantState, tolerance_m: f64) {
+    let radius = m.robot.diameter_m / 2.0;
+    let half = m.robot.length_m / 2.0 - radius;
+    let axis = Vector2::new(s.heading_rad.cos(), s.heading_rad.sin());
+    for offset in [-half, 0.0, half] {
+        let p = s.position_m + axis * offset;
+        let penetration = m.phantom.signed_distance(&p) + radius;
+        assert!(
+            penetration <= tolerance_m,
+            "capsule point {p:?} {:.3} mm into the wall at t = {:.3}",
+            penetration * 1e3,
+            s.time_s
+        );
+    }
+}
+
+#[test]
+fn a_fast_capsule_does_not_tunnel_and_contact_is_reported() {
+    let m = model(FlowMap::zero(), PlantPhysicsConfig::default(), 2);
+    let mut s = m.initial_state(ra_start(), std::f64::consts::PI);
+    // 50 m/s towards the atrium's left wall (x = −31 mm): 25 mm per 0.5 ms substep.
+    s.velocity_mps = Vector2::new(-50.0, 0.0);
+    m.step(&mut s, &[0.0; COIL_COUNT], FRAME_S);
+    assert!(s.wall_contact);
+    assert_eq!(s.contact_events, 1);
+    assert!(s.contact_time_s > 0.0);
+    assert!(
+        s.position_m.x > -0.0312,
+        "went through the wall: {:?}",
+        s.position_m
+    );
+    assert_inside(&m, &s, 0.05e-3);
+}
+
+#[test]
+fn huge_currents_never_push_the_capsule_out_of_the_canal() {
+    let m = model(FlowMap::zero(), PlantPhysicsConfig::default(), 3);
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut s = m.initial_state(ra_start(), 0.0);
+    let mut max_speed: f64 = 0.0;
+    for frame in 0..400 {
+        // A new wild command every 20 frames: up to 500 A per coil.
+        let command: [f64; COIL_COUNT] = if frame % 20 == 0 {
+            std::array::from_fn(|_| rng.random_range(-500.0..500.0))
+        } else {
+            s.coil_currents_a
+        };
+        m.step(&mut s, &command, FRAME_S);
+        max_speed = max_speed.max(s.velocity_mps.norm());
+        assert!(s.position_m.iter().all(|c| c.is_finite()));
+        assert!(
+            m.phantom.contains(&s.position_m),
+            "centre left the canal at frame {frame}"
+        );
+        assert_inside(&m, &s, 0.05e-3);
+    }
+    println!(
+        "huge currents: max speed {max_speed:.3} m/s, {} contact onsets, {:.2} s in contact",
+        s.contact_events, s.contact_time_s
+    );
+    assert!(s.contact_events > 0);
+}
+
+/// A seeded sequence of commands exercised on a model with flow (noise and vortex active).
+fn run_commands(seed: u64, frames: usize) -> Vec<PlantState> {
+    let m = model(swirl_map(), PlantPhysicsConfig::default(), seed);
+    let mut commands = ChaCha8Rng::seed_from_u64(99);
+    let mut s = m.initial_state(ra_start(), 0.4);
+    let mut trace = Vec::with_capacity(frames);
+    for _ in 0..frames {
+        let c: [f64; COIL_COUNT] = std::array::from_fn(|_| commands.random_range(-0.2..0.2));
+        m.step(&mut s, &c, FRAME_S);
+        trace.push(s.clone());
+    }
+    trace
+}
+
+#[test]
+fn same_seed_same_commands_give_bit_identical_states() {
+    let a = run_commands(42, 300);
+    let b = run_commands(42, 300);
+    assert_eq!(a, b);
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x.position_m.x.to_bits(), y.position_m.x.to_bits());
+        assert_eq!(
+            x.last_true_flow_mps.y.to_bits(),
+            y.last_true_flow_mps.y.to_bits()
+        );
+    }
+    let c = run_commands(43, 300);
+    assert_ne!(
+        a.last().map(|s| s.position_m),
+        c.last().map(|s| s.position_m)
+    );
+    assert_ne!(a[0].last_true_flow_mps, c[0].last_true_flow_mps);
+}
+
+#[test]
+fn true_flow_is_steady_times_pulsation_plus_disturbances() {
+    let steady_only = PlantPhysicsConfig {
+        recirculation: millinav_plant::trueflow::RecirculationConfig {
+            strength_fraction: 0.0,
+            ..Default::default()
+        },
+        flow_noise: millinav_plant::trueflow::FlowNoiseConfig {
+            fraction: 0.0,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let plain = model(swirl_map(), steady_only, 5);
+    let full = model(swirl_map(), PlantPhysicsConfig::default(), 5);
+    let p = Vector2::new(-0.012, 0.003); // in the recirculation band
+    let q = Vector2::new(0.0, -0.020); // below it
+    let steady = swirl_map().sample(&p);
+    // Mean of the pulsatile factor over a period is 1.
+    let n = 3000;
+    let mean: Vector2<f64> = (0..n)
+        .map(|k| plain.true_flow(&p, k as f64 / (3.0 * n as f64)))
+        .sum::<Vector2<f64>>()
+        / n as f64;
+    assert!(
+        (mean - steady).norm() < 1e-3 * steady.norm(),
+        "{mean} vs {steady}"
+    );
+    // The vortex changes the flow in the band, not below it.
+    assert!((full.true_flow(&p, 0.4) - plain.true_flow(&p, 0.4)).norm() > 1e-5);
+    assert_eq!(full.true_flow(&q, 0.4), plain.true_flow(&q, 0.4));
+    // Noise is on top, and evolves.
+    let mut s = full.initial_state(ra_start(), 0.0);
+    let n0 = full.true_flow_with_noise(&q, 0.0, &s.flow_noise) - full.true_flow(&q, 0.0);
+    full.step(&mut s, &[0.0; COIL_COUNT], 0.5);
+    let n1 = full.true_flow_with_noise(&q, 0.0, &s.flow_noise) - full.true_flow(&q, 0.0);
+    assert!(n0.norm() > 0.0 && n1.norm() > 0.0 && n0 != n1);
+}

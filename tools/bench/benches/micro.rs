@@ -1,0 +1,76 @@
+//! Criterion micro-benchmarks of the compute stages (`cargo bench -p millinav-bench`). The
+//! `bench` binary times the same workloads per iteration for median/p99 and the IPC and
+//! end-to-end rows, which need processes rather than a closure.
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use millinav_bench::{control, vision};
+use millinav_control::controllers::ControllerKind;
+
+fn controllers(c: &mut Criterion) {
+    for (kind, name) in [
+        (ControllerKind::Pid, "pid"),
+        (ControllerKind::SmcDob, "smc_dob"),
+        (ControllerKind::Mpc, "mpc"),
+    ] {
+        if let Ok(mut b) = control::ControllerBench::new(kind) {
+            let mut k = 0;
+            c.bench_function(&format!("control/{name}/update"), |bench| {
+                bench.iter(|| {
+                    k += 1;
+                    b.step(k)
+                })
+            });
+        }
+    }
+    if let Ok(a) = control::AllocationBench::new(64) {
+        let mut k = 0;
+        c.bench_function("allocation/pinv", |b| {
+            b.iter(|| {
+                k += 1;
+                a.pinv(k)
+            })
+        });
+        c.bench_function("allocation/constrained", |b| {
+            b.iter(|| {
+                k += 1;
+                a.constrained(k)
+            })
+        });
+    }
+}
+
+fn localizers(c: &mut Criterion) {
+    let scene = vision::Scene::render(0);
+    let classical = vision::classical();
+    let (w, h) = (scene.width as i32, scene.height as i32);
+    let roi = scene.roi(20.0);
+    c.bench_function("vision/classical_roi", |b| {
+        b.iter(|| {
+            classical
+                .localize(&scene.rgb, w, h, roi, scene.mm_per_px)
+                .is_ok()
+        })
+    });
+    let full = scene.full();
+    let mut group = c.benchmark_group("vision_slow");
+    group.sample_size(20);
+    group.bench_function("classical_full_frame", |b| {
+        b.iter(|| {
+            classical
+                .localize(&scene.rgb, w, h, full, scene.mm_per_px)
+                .is_ok()
+        })
+    });
+    group.finish();
+    if let Ok(mut unet) = vision::unet(&scene) {
+        c.bench_function("vision/unet_roi_localize", |b| {
+            b.iter(|| {
+                unet.localize(&scene.rgb, scene.width, scene.height, scene.centroid_px)
+                    .is_ok()
+            })
+        });
+    }
+}
+
+criterion_group!(benches, controllers, localizers);
+criterion_main!(benches);

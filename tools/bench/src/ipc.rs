@@ -1,0 +1,416 @@
+//! Publish→receive latency between two processes: iceoryx2 through the kit's ports vs a Unix
+//! domain socket (a copying transport). The receiver is a child process of the bench binary
+//! (`bench ipc-child`); both stamp CLOCK_MONOTONIC, which is one clock for every process, so
+//! one-way latency is measured directly. Each message is acknowledged before the next is sent
+//! (no queueing), and the receiver sleeps in a blocking wait as the services do, so wake-up is
+//! included.
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use millinav_kit::clock::monotonic_ns;
+use millinav_kit::iceoryx2::port::update_connections::UpdateConnections;
+use millinav_kit::iceoryx2::prelude::*;
+use millinav_kit::ports::{FrameInbox, FrameOutbox, Inbox, Outbox};
+use millinav_kit::{iceoryx_config, iox};
+use shm_schemas::{services, FrameHeader, Pose, FRAME_BYTES};
+
+use crate::BenchError;
+
+/// Sequence value that ends a child's loop.
+const STOP: u64 = u64::MAX;
+const ACK_SERVICE: &str = "millinav/bench/ack";
+const POSE_SERVICE: &str = "millinav/bench/pose";
+/// Messages before the measured ones (connection set-up, page faults).
+const WARMUP: u64 = 20;
+
+/// What is sent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Message {
+    /// 1020x1020x3 frame through the kit's `FrameOutbox::send` (copies the pixels into shm).
+    Frame,
+    /// 1020x1020x3 frame written in place into a loaned shm sample (zero-copy publish).
+    FrameLoan,
+    /// One `Pose` through `Outbox<Pose>`.
+    Pose,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Transport {
+    Iceoryx2,
+    Uds,
+}
+
+/// Where the two processes meet.
+#[derive(Debug, Clone)]
+pub struct Rendezvous {
+    pub iox_prefix: String,
+    pub iox_root: PathBuf,
+    pub socket: PathBuf,
+}
+
+impl Rendezvous {
+    pub fn new(dir: &Path) -> Self {
+        Self {
+            iox_prefix: format!("bench{}_", std::process::id()),
+            iox_root: dir.join("iox"),
+            socket: dir.join("ipc.sock"),
+        }
+    }
+}
+
+fn node(rv: &Rendezvous, name: &str) -> Result<Node<ipc::Service>, BenchError> {
+    let config = iceoryx_config(Some(&rv.iox_prefix), Some(&rv.iox_root))?;
+    Ok(NodeBuilder::new()
+        .name(&NodeName::new(name).map_err(iox("node name"))?)
+        .config(&config)
+        .create::<ipc::Service>()
+        .map_err(iox("node"))?)
+}
+
+fn frame_header(seq: u64, stamp: u64) -> FrameHeader {
+    FrameHeader {
+        seq,
+        capture_time_ns: stamp,
+        width: shm_schemas::FRAME_WIDTH,
+        height: shm_schemas::FRAME_HEIGHT,
+        stride: shm_schemas::FRAME_WIDTH * 3,
+        ..Default::default()
+    }
+}
+
+fn pose(seq: u64, stamp: u64) -> Pose {
+    Pose {
+        frame_seq: seq,
+        capture_time_ns: stamp,
+        valid: true,
+        ..Default::default()
+    }
+}
+
+fn payload_len(message: Message) -> usize {
+    match message {
+        Message::Frame | Message::FrameLoan => FRAME_BYTES,
+        Message::Pose => std::mem::size_of::<Pose>(),
+    }
+}
+
+/// Runs one measurement: spawns the receiver, sends `count` messages, returns the one-way
+/// latencies (ns) the receiver saw.
+pub fn measure(
+    exe: &Path,
+    dir: &Path,
+    transport: Transport,
+    message: Message,
+    count: u64,
+    pixels: &[u8],
+) -> Result<Vec<f64>, BenchError> {
+    let rv = Rendezvous::new(dir);
+    let _ = std::fs::remove_file(&rv.socket);
+    let listener = match transport {
+        Transport::Uds => Some(UnixListener::bind(&rv.socket)?),
+        Transport::Iceoryx2 => None,
+    };
+    let mut child = spawn_child(exe, &rv, transport, message)?;
+    let stdout = child
+        .stdout
+        .take()
+        .ok_or_else(|| setup("child has no stdout"))?;
+    let mut lines = BufReader::new(stdout).lines();
+    match lines.next() {
+        Some(Ok(l)) if l == "ready" => {}
+        other => {
+            let _ = child.kill();
+            return Err(setup(&format!("receiver did not start: {other:?}")));
+        }
+    }
+    let sent = match transport {
+        Transport::Iceoryx2 => send_iceoryx2(&rv, message, count, pixels),
+        Transport::Uds => match listener {
+            Some(l) => send_uds(&l, message, count, pixels),
+            None => Err(setup("no socket")),
+        },
+    };
+    if let Err(e) = sent {
+        let _ = child.kill();
+        let _ = child.wait();
+        return Err(e);
+    }
+    let mut latencies = Vec::new();
+    for line in lines {
+        let line = line?;
+        if let Ok(v) = line.trim().parse::<f64>() {
+            latencies.push(v);
+        }
+    }
+    let status = child.wait()?;
+    if !status.success() {
+        return Err(setup(&format!("receiver exited with {status}")));
+    }
+    Ok(latencies)
+}
+
+fn setup(msg: &str) -> BenchError {
+    BenchError::Setup(msg.to_owned())
+}
+
+fn spawn_child(
+    exe: &Path,
+    rv: &Rendezvous,
+    transport: Transport,
+    message: Message,
+) -> Result<Child, BenchError> {
+    let t = match transport {
+        Transport::Iceoryx2 => "iceoryx2",
+        Transport::Uds => "uds",
+    };
+    let m = match message {
+        Message::Frame => "frame",
+        Message::FrameLoan => "frame-loan",
+        Message::Pose => "pose",
+    };
+    Ok(Command::new(exe)
+        .args(["ipc-child", "--transport", t, "--message", m])
+        .arg("--iox-prefix")
+        .arg(&rv.iox_prefix)
+        .arg("--iox-root")
+        .arg(&rv.iox_root)
+        .arg("--socket")
+        .arg(&rv.socket)
+        .stdout(Stdio::piped())
+        .stdin(Stdio::null())
+        .spawn()?)
+}
+
+/// Publisher on the kit's frame service with the kit's QoS, for the zero-copy (loan) path.
+fn raw_frame_publisher(
+    node: &Node<ipc::Service>,
+) -> Result<
+    millinav_kit::iceoryx2::port::publisher::Publisher<ipc::Service, [u8], FrameHeader>,
+    BenchError,
+> {
+    // Must match `millinav_kit::ports::open_frame_service` exactly, or opening fails.
+    let service = node
+        .service_builder(&ServiceName::new(services::FRAME).map_err(iox("name"))?)
+        .publish_subscribe::<[u8]>()
+        .user_header::<FrameHeader>()
+        .history_size(0)
+        .subscriber_max_buffer_size(2)
+        .enable_safe_overflow(true)
+        .max_publishers(16)
+        .max_subscribers(12)
+        .max_nodes(32)
+        .open_or_create()
+        .map_err(iox("frame service"))?;
+    Ok(service
+        .publisher_builder()
+        .initial_max_slice_len(FRAME_BYTES)
+        .create()
+        .map_err(iox("frame publisher"))?)
+}
+
+fn send_iceoryx2(
+    rv: &Rendezvous,
+    message: Message,
+    count: u64,
+    pixels: &[u8],
+) -> Result<(), BenchError> {
+    let node = node(rv, "bench-tx")?;
+    let acks = Inbox::<Pose>::new(&node, ACK_SERVICE)?;
+    let frames = match message {
+        Message::Frame => Some(FrameOutbox::new(&node)?),
+        _ => None,
+    };
+    let (loan, notifier) = match message {
+        Message::FrameLoan => (
+            Some(raw_frame_publisher(&node)?),
+            Some(
+                millinav_kit::ports::open_event(
+                    &node,
+                    &services::event_service_of(services::FRAME),
+                )?
+                .notifier_builder()
+                .create()
+                .map_err(iox("notifier"))?,
+            ),
+        ),
+        _ => (None, None),
+    };
+    let poses = match message {
+        Message::Pose => Some(Outbox::<Pose>::new(&node, POSE_SERVICE)?),
+        _ => None,
+    };
+    let send = |seq: u64| -> Result<(), BenchError> {
+        let stamp = monotonic_ns();
+        if let Some(f) = &frames {
+            f.update_connections();
+            f.send(frame_header(seq, stamp), pixels, |_| {})?;
+        }
+        if let (Some(p), Some(n)) = (&loan, &notifier) {
+            let _ = p.update_connections();
+            let mut sample = p.loan_slice_uninit(FRAME_BYTES).map_err(iox("loan"))?;
+            *sample.user_header_mut() = frame_header(seq, stamp);
+            // A camera or renderer writes its pixels straight into the loan; here only the
+            // first row is written, the transport cost is what is measured.
+            for (dst, src) in sample.payload_mut()[..3 * 1020].iter_mut().zip(pixels) {
+                dst.write(*src);
+            }
+            // SAFETY: u8 has no invalid bit patterns and the shared-memory segment is mapped,
+            // zero-filled or previously written memory; the rest of the frame is stale pixels.
+            let sample = unsafe { sample.assume_init() };
+            sample.send().map_err(iox("send"))?;
+            n.notify().map_err(iox("notify"))?;
+        }
+        if let Some(p) = &poses {
+            p.update_connections();
+            p.send(pose(seq, stamp))?;
+        }
+        Ok(())
+    };
+    let wait_ack = |seq: u64, timeout: Duration| -> Result<bool, BenchError> {
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            if acks.receive_all()?.iter().any(|a| a.frame_seq == seq) {
+                return Ok(true);
+            }
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                return Ok(false);
+            }
+            let _ = acks.listener.timed_wait(|_| {}, left);
+        }
+    };
+    // Connection: resend message 0 until the receiver answers.
+    let mut connected = false;
+    for _ in 0..100 {
+        send(0)?;
+        if wait_ack(0, Duration::from_millis(100))? {
+            connected = true;
+            break;
+        }
+    }
+    if !connected {
+        return Err(setup("iceoryx2 receiver never acknowledged"));
+    }
+    for seq in 1..=count + WARMUP {
+        send(seq)?;
+        if !wait_ack(seq, Duration::from_secs(2))? {
+            return Err(setup(&format!("no ack for message {seq}")));
+        }
+    }
+    // The stop message may need a few tries if the receiver is busy.
+    for _ in 0..20 {
+        send(STOP)?;
+        if wait_ack(STOP, Duration::from_millis(100))? {
+            break;
+        }
+    }
+    Ok(())
+}
+
+fn send_uds(
+    listener: &UnixListener,
+    message: Message,
+    count: u64,
+    pixels: &[u8],
+) -> Result<(), BenchError> {
+    let (mut stream, _) = listener.accept()?;
+    let len = payload_len(message);
+    let mut buf = vec![0u8; 16 + len];
+    buf[16..16 + len.min(pixels.len())].copy_from_slice(&pixels[..len.min(pixels.len())]);
+    let mut ack = [0u8; 1];
+    for seq in (1..=count + WARMUP).chain(std::iter::once(STOP)) {
+        let stamp = monotonic_ns();
+        buf[..8].copy_from_slice(&seq.to_le_bytes());
+        buf[8..16].copy_from_slice(&stamp.to_le_bytes());
+        stream.write_all(&buf)?;
+        stream.read_exact(&mut ack)?;
+    }
+    Ok(())
+}
+
+/// The receiver (child process): prints `ready`, receives until the stop message, prints one
+/// latency (ns) per measured message.
+pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<(), BenchError> {
+    let mut latencies: Vec<u64> = Vec::new();
+    let mut out = std::io::stdout().lock();
+    match transport {
+        Transport::Uds => {
+            let mut stream = UnixStream::connect(&rv.socket)?;
+            writeln!(out, "ready")?;
+            out.flush()?;
+            let mut buf = vec![0u8; 16 + payload_len(message)];
+            loop {
+                stream.read_exact(&mut buf)?;
+                let now = monotonic_ns();
+                let seq = u64::from_le_bytes(buf[..8].try_into().unwrap_or_default());
+                let stamp = u64::from_le_bytes(buf[8..16].try_into().unwrap_or_default());
+                stream.write_all(&[1])?;
+                if seq == STOP {
+                    break;
+                }
+                if seq > WARMUP {
+                    latencies.push(now.saturating_sub(stamp));
+                }
+            }
+        }
+        Transport::Iceoryx2 => {
+            let node = node(rv, "bench-rx")?;
+            let ack = Outbox::<Pose>::new(&node, ACK_SERVICE)?;
+            let frames = match message {
+                Message::Frame | Message::FrameLoan => Some(FrameInbox::new(&node)?),
+                Message::Pose => None,
+            };
+            let poses = match message {
+                Message::Pose => Some(Inbox::<Pose>::new(&node, POSE_SERVICE)?),
+                _ => None,
+            };
+            writeln!(out, "ready")?;
+            out.flush()?;
+            let idle_limit = Duration::from_secs(10);
+            let mut idle = std::time::Instant::now();
+            loop {
+                let mut got: Option<(u64, u64, u64)> = None;
+                if let Some(f) = &frames {
+                    let _ = f.listener.timed_wait(|_| {}, Duration::from_millis(100));
+                    if let Some(sample) = f.latest()? {
+                        let now = monotonic_ns();
+                        let h = sample.user_header();
+                        got = Some((h.seq, h.capture_time_ns, now));
+                    }
+                }
+                if let Some(p) = &poses {
+                    let _ = p.listener.timed_wait(|_| {}, Duration::from_millis(100));
+                    if let Some(m) = p.latest()? {
+                        got = Some((m.frame_seq, m.capture_time_ns, monotonic_ns()));
+                    }
+                }
+                ack.update_connections();
+                match got {
+                    Some((seq, stamp, now)) => {
+                        idle = std::time::Instant::now();
+                        ack.send(pose(seq, 0))?;
+                        if seq == STOP {
+                            break;
+                        }
+                        if seq > WARMUP {
+                            latencies.push(now.saturating_sub(stamp));
+                        }
+                    }
+                    None if idle.elapsed() > idle_limit => {
+                        return Err(setup("receiver: no message for 10 s"));
+                    }
+                    None => {}
+                }
+            }
+        }
+    }
+    for l in latencies {
+        writeln!(out, "{l}")?;
+    }
+    out.flush()?;
+    Ok(())
+}

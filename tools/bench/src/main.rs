@@ -1,0 +1,462 @@
+//! `bench`: runs the millinav benchmark suite and prints one Markdown table (median and p99 per
+//! measurement, ratios measured in the same run, pass/fail against the project's targets).
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use millinav_bench::stats::{markdown, time_each, Row, RowValue, Stats};
+use millinav_bench::{control, e2e, ipc, vision};
+use millinav_control::controllers::ControllerKind;
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "bench",
+    about = "millinav benchmark suite: IPC (iceoryx2 vs Unix socket), vision (UNet ROI, classical \
+             full frame and ROI), control (PID, SMC-DOB, MPC, allocation) and end to end through \
+             the real process set in real-time mode. Prints a Markdown table of median and p99."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Cmd>,
+    /// Iterations per micro-benchmark (control, allocation) and per Pose IPC measurement.
+    #[arg(long, default_value_t = 5000)]
+    iters: usize,
+    /// Iterations per vision measurement and per Frame IPC measurement.
+    #[arg(long, default_value_t = 1000)]
+    frame_iters: usize,
+    /// Real-time seconds of the end-to-end run (the first second is start-up and not counted).
+    #[arg(long, default_value_t = 12.0)]
+    e2e_seconds: f64,
+    /// Skip groups: any of ipc, vision, control, e2e.
+    #[arg(long, value_delimiter = ',')]
+    skip: Vec<String>,
+    /// Scratch directory (sockets, iceoryx2 root, the end-to-end run); default a fresh one in /tmp.
+    #[arg(long)]
+    work_dir: Option<PathBuf>,
+    /// Also time the experiments tool (`experiments --trials 1 --controllers smc-dob`, fast
+    /// mode and process set; one sample each, minutes).
+    #[arg(long)]
+    experiments: bool,
+    /// Directory holding the `millinav` process-set binaries; default: next to this executable.
+    #[arg(long)]
+    bin_dir: Option<PathBuf>,
+}
+
+#[derive(Subcommand, Debug)]
+enum Cmd {
+    /// Internal: the receiving process of an IPC measurement (spawned by `bench` itself).
+    #[command(hide = true)]
+    IpcChild {
+        #[arg(long, value_enum)]
+        transport: ipc::Transport,
+        #[arg(long, value_enum)]
+        message: ipc::Message,
+        #[arg(long)]
+        iox_prefix: String,
+        #[arg(long)]
+        iox_root: PathBuf,
+        #[arg(long)]
+        socket: PathBuf,
+    },
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    if let Some(Cmd::IpcChild {
+        transport,
+        message,
+        iox_prefix,
+        iox_root,
+        socket,
+    }) = cli.command
+    {
+        let rv = ipc::Rendezvous {
+            iox_prefix,
+            iox_root,
+            socket,
+        };
+        return Ok(ipc::child(&rv, transport, message)?);
+    }
+    millinav_kit::iceoryx2::prelude::set_log_level(
+        millinav_kit::iceoryx2::prelude::LogLevel::Error,
+    );
+    let work = match &cli.work_dir {
+        Some(d) => d.clone(),
+        None => std::env::temp_dir().join(format!("millinav-bench-{}", std::process::id())),
+    };
+    std::fs::create_dir_all(&work)?;
+    let exe = std::env::current_exe()?;
+    let bin_dir = match &cli.bin_dir {
+        Some(d) => d.clone(),
+        None => exe
+            .parent()
+            .context("executable has no directory")?
+            .to_owned(),
+    };
+    let skip = |g: &str| cli.skip.iter().any(|s| s == g);
+    let mut rows = Vec::new();
+    let scene = vision::Scene::render(0);
+
+    if !skip("ipc") {
+        eprintln!("ipc ...");
+        rows.extend(ipc_rows(&cli, &exe, &work, &scene.rgb)?);
+    }
+    if !skip("vision") {
+        eprintln!("vision ...");
+        rows.extend(vision_rows(&cli, &scene)?);
+    }
+    if !skip("control") {
+        eprintln!("control ...");
+        rows.extend(control_rows(&cli)?);
+    }
+    if !skip("e2e") {
+        eprintln!("end to end ({} s real time) ...", cli.e2e_seconds);
+        rows.extend(e2e_rows(&bin_dir, &work, cli.e2e_seconds));
+    }
+    rows.extend(experiments_rows(&cli, &bin_dir, &work));
+    println!("{}", markdown(&rows));
+    if cli.work_dir.is_none() {
+        let _ = std::fs::remove_dir_all(&work);
+    }
+    Ok(())
+}
+
+fn ratio_row(what: String, slow: &[f64], fast: &[f64], target: Option<f64>) -> Row {
+    let (s, f) = (Stats::of(slow), Stats::of(fast));
+    let (med, p99) = match (s, f) {
+        (Some(s), Some(f)) => (s.median_ns / f.median_ns, s.p99_ns / f.p99_ns),
+        _ => (f64::NAN, f64::NAN),
+    };
+    let row = Row {
+        area: "IPC",
+        what,
+        value: RowValue::Number {
+            median: med,
+            p99,
+            unit: "x",
+            n: slow.len().min(fast.len()),
+        },
+        target: String::new(),
+        verdict: millinav_bench::stats::Verdict::Info,
+    };
+    match target {
+        Some(t) => row.target(format!("≥ {t:.0}x"), med >= t && p99 >= t),
+        None => row,
+    }
+}
+
+fn ipc_rows(
+    cli: &Cli,
+    exe: &std::path::Path,
+    work: &std::path::Path,
+    pixels: &[u8],
+) -> anyhow::Result<Vec<Row>> {
+    use ipc::{measure, Message, Transport};
+    let n_frame = cli.frame_iters as u64;
+    let n_pose = cli.iters as u64;
+    let m = |t, msg, n| {
+        measure(exe, work, t, msg, n, pixels).with_context(|| format!("IPC {t:?} {msg:?}"))
+    };
+    let loan = m(Transport::Iceoryx2, Message::FrameLoan, n_frame)?;
+    let kit = m(Transport::Iceoryx2, Message::Frame, n_frame)?;
+    let uds = m(Transport::Uds, Message::Frame, n_frame)?;
+    let pose_iox = m(Transport::Iceoryx2, Message::Pose, n_pose)?;
+    let pose_uds = m(Transport::Uds, Message::Pose, n_pose)?;
+    let p99_under = |v: &[f64], ns: f64| Stats::of(v).is_some_and(|s| s.p99_ns < ns);
+    Ok(vec![
+        Row::time(
+            "IPC",
+            "Frame 3.1 MB, iceoryx2 zero-copy (loan, write in place, send)",
+            Stats::of(&loan),
+        )
+        .target("p99 < 50 µs", p99_under(&loan, 50e3)),
+        Row::time(
+            "IPC",
+            "Frame 3.1 MB, iceoryx2 kit `FrameOutbox::send` (memcpy into shm)",
+            Stats::of(&kit),
+        )
+        .target("p99 < 50 µs", p99_under(&kit, 50e3)),
+        Row::time(
+            "IPC",
+            "Frame 3.1 MB, Unix domain socket (write + read)",
+            Stats::of(&uds),
+        ),
+        ratio_row(
+            "Frame: socket / iceoryx2 zero-copy".into(),
+            &uds,
+            &loan,
+            Some(20.0),
+        ),
+        ratio_row(
+            "Frame: socket / iceoryx2 kit send".into(),
+            &uds,
+            &kit,
+            Some(20.0),
+        ),
+        Row::time(
+            "IPC",
+            format!(
+                "Pose {} B, iceoryx2 kit `Outbox`/`Inbox`",
+                std::mem::size_of::<shm_schemas::Pose>()
+            ),
+            Stats::of(&pose_iox),
+        ),
+        Row::time(
+            "IPC",
+            format!(
+                "Pose {} B, Unix domain socket",
+                std::mem::size_of::<shm_schemas::Pose>()
+            ),
+            Stats::of(&pose_uds),
+        ),
+        ratio_row("Pose: socket / iceoryx2".into(), &pose_uds, &pose_iox, None),
+    ])
+}
+
+fn vision_rows(cli: &Cli, scene: &vision::Scene) -> anyhow::Result<Vec<Row>> {
+    let n = cli.frame_iters;
+    let classical = vision::classical();
+    let mut rows = Vec::new();
+    let full = scene.full();
+    let roi = scene.roi(20.0);
+    let found = |rect| {
+        classical
+            .localize(
+                &scene.rgb,
+                scene.width as i32,
+                scene.height as i32,
+                rect,
+                scene.mm_per_px,
+            )
+            .is_ok()
+    };
+    let (found_full, found_roi) = (found(full), found(roi));
+    match vision::unet(scene) {
+        Ok(mut unet) => {
+            let found_unet = unet
+                .localize(&scene.rgb, scene.width, scene.height, scene.centroid_px)
+                .is_ok();
+            let infer_only = {
+                let crop = vec![128u8; 96 * 96 * 3];
+                time_each(20, n, |_| {
+                    let _ = std::hint::black_box(unet.infer(&crop));
+                })
+            };
+            let localize = time_each(20, n, |_| {
+                let _ = std::hint::black_box(unet.localize(
+                    &scene.rgb,
+                    scene.width,
+                    scene.height,
+                    scene.centroid_px,
+                ));
+            });
+            rows.push(Row::time(
+                "vision",
+                "UNet ROI: ONNX Runtime `infer` (96x96, 1 thread)",
+                Stats::of(&infer_only),
+            ));
+            let p99 = Stats::of(&localize).map_or(f64::INFINITY, |s| s.p99_ns);
+            rows.push(
+                Row::time(
+                    "vision",
+                    format!(
+                        "UNet ROI `localize` (crop + infer + keypoints){}",
+                        if found_unet {
+                            ""
+                        } else {
+                            " — capsule NOT found"
+                        }
+                    ),
+                    Stats::of(&localize),
+                )
+                .target("p99 < 10 ms (100 Hz budget)", p99 < 10e6),
+            );
+        }
+        Err(e) => rows.push(Row::text(
+            "vision",
+            "UNet ROI",
+            format!("not measured: {e}"),
+        )),
+    }
+    let t_full = time_each(5, n.min(300), |_| {
+        let _ = std::hint::black_box(classical.localize(
+            &scene.rgb,
+            scene.width as i32,
+            scene.height as i32,
+            full,
+            scene.mm_per_px,
+        ));
+    });
+    let t_roi = time_each(20, n, |_| {
+        let _ = std::hint::black_box(classical.localize(
+            &scene.rgb,
+            scene.width as i32,
+            scene.height as i32,
+            roi,
+            scene.mm_per_px,
+        ));
+    });
+    let note = |ok: bool| if ok { "" } else { " — capsule NOT found" };
+    rows.push(Row::time(
+        "vision",
+        format!(
+            "re-acquisition: classical full frame 1020x1020{}",
+            note(found_full)
+        ),
+        Stats::of(&t_full),
+    ));
+    rows.push(Row::time(
+        "vision",
+        format!(
+            "classical ROI fallback (20 mm = 222 px square){}",
+            note(found_roi)
+        ),
+        Stats::of(&t_roi),
+    ));
+    Ok(rows)
+}
+
+fn control_rows(cli: &Cli) -> anyhow::Result<Vec<Row>> {
+    let n = cli.iters;
+    let mut rows = Vec::new();
+    for (kind, name) in [
+        (ControllerKind::Pid, "PID"),
+        (ControllerKind::SmcDob, "SMC-DOB"),
+        (ControllerKind::Mpc, "MPC (clarabel QP)"),
+    ] {
+        let mut c = control::ControllerBench::new(kind)?;
+        let t = time_each(50, n, |k| c.step(k));
+        let row = Row::time(
+            "control",
+            format!("{name}: controller update"),
+            Stats::of(&t),
+        );
+        rows.push(if kind == ControllerKind::Mpc {
+            let p99 = row.p99_ns().unwrap_or(f64::INFINITY);
+            row.target("p99 < 2 ms", p99 < 2e6)
+        } else {
+            row
+        });
+        let mut l = control::LoopBench::new(kind)?;
+        let t = time_each(50, n, |k| l.step(k));
+        rows.push(Row::time(
+            "control",
+            format!("{name}: `ControlLoop::step` (+ checks, pinv allocation)"),
+            Stats::of(&t),
+        ));
+    }
+    let a = control::AllocationBench::new(64)?;
+    let pinv = time_each(50, n, |k| a.pinv(k));
+    let qp = time_each(20, n, |k| a.constrained(k));
+    rows.push(Row::time(
+        "allocation",
+        "SVD pseudo-inverse `allocate_pinv` (4x8)",
+        Stats::of(&pinv),
+    ));
+    rows.push(Row::time(
+        "allocation",
+        "constrained QP `allocate_constrained` (clarabel)",
+        Stats::of(&qp),
+    ));
+    let (sp, sq) = (Stats::of(&pinv), Stats::of(&qp));
+    if let (Some(sp), Some(sq)) = (sp, sq) {
+        rows.push(Row {
+            area: "allocation",
+            what: "constrained / pinv".into(),
+            value: RowValue::Number {
+                median: sq.median_ns / sp.median_ns,
+                p99: sq.p99_ns / sp.p99_ns,
+                unit: "x",
+                n,
+            },
+            target: String::new(),
+            verdict: millinav_bench::stats::Verdict::Info,
+        });
+    }
+    Ok(rows)
+}
+
+fn e2e_rows(bin_dir: &std::path::Path, work: &std::path::Path, seconds: f64) -> Vec<Row> {
+    let r = match e2e::run(bin_dir, work, seconds) {
+        Ok(r) => r,
+        Err(e) => {
+            return vec![Row::text(
+                "end to end",
+                "real-time process set",
+                format!("not measured: {e}"),
+            )]
+        }
+    };
+    let p99 = Stats::of(&r.serial_ns).map_or(f64::INFINITY, |s| s.p99_ns);
+    let hz = r.closed_loop_hz();
+    vec![
+        Row::time("end to end", "capture → Pose at control", Stats::of(&r.pose_ns)),
+        Row::time("end to end", "capture → CoilCommand at coilbus", Stats::of(&r.command_ns)),
+        Row::time("end to end", "capture → serial frame received by the Teensy", Stats::of(&r.serial_ns))
+            .target("p99 < 10 ms", p99 < 10e6),
+        Row {
+            area: "end to end",
+            what: format!(
+                "closed-loop rate, UNet vision (commands at the Teensy / s; plant published {:.1} frames/s)",
+                r.frame_hz()
+            ),
+            value: RowValue::Number { median: hz, p99: hz, unit: " Hz", n: r.commanded },
+            target: String::new(),
+            verdict: millinav_bench::stats::Verdict::Info,
+        }
+        .target("≥ 100 Hz", hz >= 100.0 * 0.99),
+        Row::text(
+            "end to end",
+            format!("deadline misses (no command at the Teensy within {:.0} ms of capture)", r.frame_period_s * 1e3),
+            format!("{} of {} frames ({:.1} %)", r.deadline_misses, r.frames, 100.0 * r.deadline_misses as f64 / r.frames.max(1) as f64),
+        )
+        .target("0", r.deadline_misses == 0),
+    ]
+}
+
+fn experiments_rows(cli: &Cli, bin_dir: &std::path::Path, work: &std::path::Path) -> Vec<Row> {
+    let what = |mode: &str| {
+        format!("experiments, {mode}: SMC-DOB column of the matrix, 1 trial (wall time)")
+    };
+    let exe = bin_dir.join("experiments");
+    if !cli.experiments || !exe.is_file() {
+        let why = if exe.is_file() {
+            "not run (pass --experiments)"
+        } else {
+            "pending (experiments binary not built)"
+        };
+        return vec![Row::text(
+            "experiments",
+            "wall time, fast mode and process set",
+            why,
+        )];
+    }
+    ["fast", "process"]
+        .iter()
+        .map(|mode| {
+            let t = std::time::Instant::now();
+            let status = std::process::Command::new(&exe)
+                .current_dir(millinav_bench::workspace_root())
+                .args([
+                    "--mode",
+                    mode,
+                    "--trials",
+                    "1",
+                    "--controllers",
+                    "smc-dob",
+                    "--out",
+                ])
+                .arg(work.join(format!("experiments-{mode}")))
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::null())
+                .status();
+            let ns = t.elapsed().as_nanos() as f64;
+            match status {
+                Ok(s) if s.success() => Row::time("experiments", what(mode), Stats::of(&[ns])),
+                Ok(s) => Row::text("experiments", what(mode), format!("failed ({s})")),
+                Err(e) => Row::text("experiments", what(mode), format!("failed: {e}")),
+            }
+        })
+        .collect()
+}

@@ -1,0 +1,380 @@
+//! The paper's experiment matrix on the digital twin.
+//!
+//! Two modes share the scenario, the metrics and the reports:
+//! - `fast`: one process, the same libraries as the services (plant model, flow estimator,
+//!   control loop, coilbus safety logic and its mA wire quantization), with the camera and
+//!   vision replaced by ground truth plus Gaussian localization noise (σ from vision-eval);
+//! - `process`: the real process set in lockstep through `millinav run`, metrics from truth.csv.
+
+pub mod report;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use anyhow::{bail, Context};
+use millinav_coilbus::protocol::{amps_to_ma, ma_to_amps};
+use millinav_coilbus::{CoilBus, CoilbusConfig};
+use millinav_control::reference::Reference;
+use millinav_kit::clock::secs_to_ns;
+use millinav_kit::scenario::Scenario;
+use millinav_plant::PlantConfig;
+use nalgebra::Vector2;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use shm_schemas::{deadlines, Pose, PoseSource, COIL_COUNT};
+
+/// Flow settings of the paper.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum FlowSetting {
+    Static,
+    /// 180 mL/min, peak ≈ 7 cm/s.
+    Q180,
+    /// 250 mL/min, peak ≈ 10 cm/s.
+    Q250,
+}
+
+impl FlowSetting {
+    pub fn label(self) -> &'static str {
+        match self {
+            Self::Static => "static",
+            Self::Q180 => "7 cm/s",
+            Self::Q250 => "10 cm/s",
+        }
+    }
+
+    /// The committed CFD map for this setting and viscosity, if the fluid moves.
+    pub fn map(self, viscosity_cp: f64, root: &Path) -> Option<PathBuf> {
+        let q = match self {
+            Self::Static => return None,
+            Self::Q180 => "q180",
+            Self::Q250 => "q250",
+        };
+        let mu = if viscosity_cp > 10.0 { "mu20" } else { "mu4p3" };
+        Some(root.join(format!("fieldmaps/flow/{q}_{mu}.flow.csv")))
+    }
+}
+
+/// One cell of the matrix.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Cell {
+    pub viscosity_cp: f64,
+    pub flow: FlowSetting,
+    /// Scenario name of the controller (pid, mpc, smc-dob, smc, smc-dob-auto).
+    pub controller: String,
+    pub seed: u64,
+}
+
+impl Cell {
+    pub fn name(&self) -> String {
+        format!(
+            "{}cp_{}_{}_s{}",
+            self.viscosity_cp,
+            match self.flow {
+                FlowSetting::Static => "static",
+                FlowSetting::Q180 => "q180",
+                FlowSetting::Q250 => "q250",
+            },
+            self.controller,
+            self.seed
+        )
+    }
+}
+
+/// The paper's matrix (plus the auto-scheduled SMC-DOB when `beyond` is set).
+pub fn paper_matrix(trials: u64, beyond: bool) -> Vec<Cell> {
+    let mut controllers = vec!["pid", "mpc", "smc-dob", "smc"];
+    if beyond {
+        controllers.push("smc-dob-auto");
+    }
+    let mut cells = Vec::new();
+    for viscosity_cp in [20.0, 4.3] {
+        for flow in [FlowSetting::Static, FlowSetting::Q180, FlowSetting::Q250] {
+            for controller in &controllers {
+                for seed in 1..=trials {
+                    cells.push(Cell {
+                        viscosity_cp,
+                        flow,
+                        controller: controller.to_string(),
+                        seed,
+                    });
+                }
+            }
+        }
+    }
+    cells
+}
+
+/// The scenario text of a cell: the base scenario's run, trajectory, plant and vision tables
+/// with the cell's fluid, flow map, controller and seed.
+pub fn cell_scenario(base: &Scenario, cell: &Cell, root: &Path) -> anyhow::Result<String> {
+    let mut doc: toml::Table = toml::Table::new();
+    let mut run = toml::Table::try_from(&base.run)?;
+    run.insert("seed".into(), toml::Value::Integer(cell.seed as i64));
+    doc.insert("run".into(), run.into());
+    let mut fluid = toml::Table::try_from(&base.fluid)?;
+    fluid.insert("viscosity_cp".into(), cell.viscosity_cp.into());
+    doc.insert("fluid".into(), fluid.into());
+    doc.insert(
+        "trajectory".into(),
+        toml::Table::try_from(&base.trajectory)?.into(),
+    );
+    for (key, value) in &base.sections {
+        doc.insert(key.clone(), value.clone());
+    }
+    let mut flow = doc
+        .get("flow")
+        .and_then(|v| v.as_table().cloned())
+        .unwrap_or_default();
+    flow.remove("map");
+    if let Some(map) = cell.flow.map(cell.viscosity_cp, root) {
+        flow.insert("map".into(), map.to_string_lossy().into_owned().into());
+    }
+    doc.insert("flow".into(), flow.into());
+    let mut control = doc
+        .get("control")
+        .and_then(|v| v.as_table().cloned())
+        .unwrap_or_default();
+    control.insert("controller".into(), cell.controller.clone().into());
+    if cell.controller == "smc-dob-auto" {
+        control.insert("constrained_allocation".into(), true.into());
+    }
+    doc.insert("control".into(), control.into());
+    Ok(toml::to_string(&doc)?)
+}
+
+/// One frame of a run's trace.
+#[derive(Debug, Clone, Copy)]
+pub struct TraceRow {
+    pub time_s: f64,
+    pub position_m: Vector2<f64>,
+    pub wall_contact: bool,
+    pub max_abs_current_a: f64,
+    /// Σ I² over the coils (A²), for energy.
+    pub sum_sq_current_a2: f64,
+}
+
+/// Localization noise of the fast mode (per axis), from vision-eval's centroid error.
+pub const FAST_POSE_NOISE_M: f64 = 2.0e-5;
+
+/// Runs a scenario in one process with the services' own libraries.
+pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
+    let plant_config: PlantConfig = scenario.section("plant")?;
+    let model = millinav_plant::build_model(scenario, &plant_config)?;
+    let mut state = millinav_plant::initial_state(scenario, &plant_config, &model);
+    let mut control = millinav_control::build_loop(scenario, 0)?;
+    let flow = millinav_flow::load_estimator(scenario)?;
+    let coilbus: CoilbusConfig = scenario.section("coilbus")?;
+    let mut bus = CoilBus::new(coilbus.limits.clone(), deadlines::COMMAND);
+    let mut rng = ChaCha8Rng::seed_from_u64(scenario.run.seed ^ 0x7669_7369_6f6e);
+    let noise = Normal::new(0.0, FAST_POSE_NOISE_M)?;
+    let dt = scenario.frame_period_s();
+    let frames = (scenario.run.duration_s / dt).ceil() as u64;
+    let mut applied = [0.0; COIL_COUNT];
+    let mut trace = Vec::with_capacity(frames as usize + 1);
+    let now = std::time::Instant::now();
+    for seq in 0..=frames {
+        trace.push(TraceRow {
+            time_s: state.time_s,
+            position_m: state.position_m,
+            wall_contact: state.wall_contact,
+            max_abs_current_a: state
+                .coil_currents_a
+                .iter()
+                .fold(0.0, |m, c| m.max(c.abs())),
+            sum_sq_current_a2: state.coil_currents_a.iter().map(|c| c * c).sum(),
+        });
+        if seq == frames {
+            break;
+        }
+        let measured =
+            state.position_m + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng));
+        let pose = Pose {
+            frame_seq: seq,
+            capture_time_ns: secs_to_ns(state.time_s),
+            position_m: [measured.x, measured.y],
+            heading_rad: state.heading_rad,
+            confidence: 1.0,
+            valid: true,
+            source: PoseSource::Unet as u32,
+            ..Default::default()
+        };
+        let estimate = flow.estimate(&pose);
+        let decision = control.step(&pose, Some(&estimate));
+        if let Some(out) = bus.on_command(&decision.command) {
+            bus.applied(&decision.command, &out, now);
+            // The wire carries milliamperes.
+            applied = out.currents_a.map(|a| ma_to_amps(amps_to_ma(a)));
+        }
+        model.step(&mut state, &applied, dt);
+    }
+    Ok(trace)
+}
+
+/// Runs a scenario through the real process set (`millinav run`, lockstep) and reads back
+/// the plant's ground truth.
+pub fn process_run(
+    scenario_text: &str,
+    bin_dir: &Path,
+    work_dir: &Path,
+    name: &str,
+) -> anyhow::Result<Vec<TraceRow>> {
+    let dir = work_dir.join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir)?;
+    let scenario_path = dir.join("scenario.toml");
+    std::fs::write(&scenario_path, scenario_text)?;
+    let run_dir = dir.join("run");
+    let prefix = format!(
+        "mx{}{}_",
+        std::process::id(),
+        name.replace(|c: char| !c.is_ascii_alphanumeric(), "")
+    );
+    let status = Command::new(bin_dir.join("millinav"))
+        .arg("run")
+        .arg(&scenario_path)
+        .arg("--run-dir")
+        .arg(&run_dir)
+        .args(["--viewer", "none", "--iox-prefix", &prefix])
+        .arg("--iox-root")
+        .arg(dir.join("iceoryx2"))
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(dir.join("supervisor.log"))?)
+        .status()
+        .context("running millinav")?;
+    if !status.success() {
+        bail!(
+            "millinav run failed ({status}); see {}",
+            dir.join("supervisor.log").display()
+        );
+    }
+    read_truth(&run_dir.join("truth.csv"))
+}
+
+/// Parses a plant truth.csv into a trace (one row per frame; republished frames dropped).
+pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TraceRow>> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut rows = Vec::new();
+    let mut last_seq = None;
+    for line in text.lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() < 12 {
+            continue;
+        }
+        let seq: u64 = f[0].parse()?;
+        if last_seq == Some(seq) {
+            continue;
+        }
+        last_seq = Some(seq);
+        let max_current: f64 = f[10].parse()?;
+        rows.push(TraceRow {
+            time_s: f[1].parse()?,
+            position_m: Vector2::new(f[2].parse()?, f[3].parse()?),
+            wall_contact: f[9] == "1",
+            max_abs_current_a: max_current,
+            // truth.csv keeps only the largest current; bound the sum by it.
+            sum_sq_current_a2: max_current * max_current * COIL_COUNT as f64,
+        });
+    }
+    Ok(rows)
+}
+
+/// Metrics of one run against its reference.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Metrics {
+    pub rmse_mm: f64,
+    pub p95_mm: f64,
+    pub max_mm: f64,
+    pub completed: bool,
+    pub wall_contact_frames: usize,
+    pub peak_current_a: f64,
+    pub energy_j: f64,
+}
+
+/// "Failed to complete": the error stays above `FAIL_ERROR_M` for longer than `FAIL_TIME_S`
+/// (the robot was lost or stuck), or the robot is not within `FAIL_ERROR_M` of the end.
+pub const FAIL_ERROR_M: f64 = 5.0e-3;
+pub const FAIL_TIME_S: f64 = 2.0;
+
+pub fn metrics(trace: &[TraceRow], reference: &Reference, coil_resistance_ohm: f64) -> Metrics {
+    let mut errors = Vec::with_capacity(trace.len());
+    let mut above_since: Option<f64> = None;
+    let mut failed = false;
+    let mut energy = 0.0;
+    for (i, row) in trace.iter().enumerate() {
+        let e = (row.position_m - reference.sample(row.time_s).position_m).norm();
+        errors.push(e);
+        if e > FAIL_ERROR_M {
+            let since = *above_since.get_or_insert(row.time_s);
+            failed |= row.time_s - since > FAIL_TIME_S;
+        } else {
+            above_since = None;
+        }
+        if i > 0 {
+            energy +=
+                row.sum_sq_current_a2 * coil_resistance_ohm * (row.time_s - trace[i - 1].time_s);
+        }
+    }
+    let final_error = errors.last().copied().unwrap_or(f64::INFINITY);
+    let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len().max(1) as f64).sqrt();
+    let mut sorted = errors.clone();
+    sorted.sort_by(|a, b| a.total_cmp(b));
+    let p95 = sorted
+        .get(((sorted.len() as f64 - 1.0) * 0.95).round() as usize)
+        .copied()
+        .unwrap_or(f64::NAN);
+    Metrics {
+        rmse_mm: rmse * 1e3,
+        p95_mm: p95 * 1e3,
+        max_mm: sorted.last().copied().unwrap_or(f64::NAN) * 1e3,
+        completed: !failed && final_error <= FAIL_ERROR_M,
+        wall_contact_frames: trace.iter().filter(|r| r.wall_contact).count(),
+        peak_current_a: trace.iter().fold(0.0, |m, r| m.max(r.max_abs_current_a)),
+        energy_j: energy,
+    }
+}
+
+pub fn reference_of(scenario: &Scenario) -> anyhow::Result<Reference> {
+    Ok(Reference::new(
+        &scenario.waypoints_m(),
+        scenario.trajectory.speed_mm_s * 1e-3,
+        scenario.trajectory.start_time_s,
+    )?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metrics_on_a_perfect_and_a_lost_trace() {
+        let reference = Reference::new(&[[0.0, 0.0], [0.01, 0.0]], 1e-3, 0.0).unwrap();
+        let perfect: Vec<TraceRow> = (0..=100)
+            .map(|i| {
+                let t = i as f64 * 0.1;
+                TraceRow {
+                    time_s: t,
+                    position_m: reference.sample(t).position_m,
+                    wall_contact: false,
+                    max_abs_current_a: 1.0,
+                    sum_sq_current_a2: 1.0,
+                }
+            })
+            .collect();
+        let m = metrics(&perfect, &reference, 10.0);
+        assert!(m.rmse_mm < 1e-9 && m.completed);
+        assert!((m.energy_j - 100.0).abs() < 1e-6, "{}", m.energy_j);
+        let lost: Vec<TraceRow> = perfect
+            .iter()
+            .map(|r| TraceRow {
+                position_m: Vector2::new(-0.01, 0.0),
+                ..*r
+            })
+            .collect();
+        let m = metrics(&lost, &reference, 10.0);
+        assert!(!m.completed);
+        assert!((m.max_mm - 20.0).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,171 @@
+//! `experiments`: the paper's matrix on the twin, with tables and figures.
+use std::path::PathBuf;
+use std::sync::Mutex;
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::{Parser, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use millinav_experiments::report::{self, Outcome};
+use millinav_experiments::{
+    cell_scenario, fast_run, metrics, paper_matrix, process_run, reference_of, Cell, TraceRow,
+};
+use millinav_kit::scenario::Scenario;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Mode {
+    /// One process, the services' libraries, ground truth + localization noise for vision.
+    Fast,
+    /// The real process set in lockstep through `millinav run` (slow: full camera + vision).
+    Process,
+}
+
+/// Runs the paper's matrix (viscosity {20, 4.3} cP x flow {static, 7, 10 cm/s} x controller
+/// {PID, MPC, SMC-DOB, SMC without DOB} x trials) on the digital twin and writes results.csv,
+/// table.md and PNG figures into --out.
+#[derive(Parser)]
+#[command(name = "experiments", version)]
+struct Args {
+    /// Base scenario (run, trajectory, plant and vision settings); each cell overrides fluid,
+    /// flow map, controller and seed.
+    #[arg(long, default_value = "scenarios/paper.toml")]
+    base: PathBuf,
+    #[arg(long, value_enum, default_value = "fast")]
+    mode: Mode,
+    /// Seeded trials per cell.
+    #[arg(long, default_value_t = 3)]
+    trials: u64,
+    /// Also run the auto-scheduled SMC-DOB with constrained allocation (beyond the paper).
+    #[arg(long)]
+    beyond: bool,
+    /// Only these controllers (comma separated), e.g. smc-dob,pid.
+    #[arg(long, value_delimiter = ',')]
+    controllers: Vec<String>,
+    /// Worker threads (fast mode).
+    #[arg(long, default_value_t = 2)]
+    threads: usize,
+    /// Output directory.
+    #[arg(long, default_value = "results")]
+    out: PathBuf,
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let root = std::env::current_dir()?;
+    let base = Scenario::load(&args.base)
+        .with_context(|| format!("base scenario {}", args.base.display()))?;
+    let mut cells = paper_matrix(args.trials.max(1), args.beyond);
+    if !args.controllers.is_empty() {
+        cells.retain(|c| args.controllers.contains(&c.controller));
+    }
+    std::fs::create_dir_all(&args.out)?;
+    let bin_dir = std::env::current_exe()?
+        .parent()
+        .context("exe dir")?
+        .to_owned();
+    let bar = ProgressBar::new(cells.len() as u64).with_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let outcomes: Mutex<Vec<Outcome>> = Mutex::new(Vec::new());
+    let traces: Mutex<Vec<(Cell, Vec<TraceRow>)>> = Mutex::new(Vec::new());
+    let queue = Mutex::new(cells.clone());
+    let start = Instant::now();
+    let threads = match args.mode {
+        Mode::Fast => args.threads.max(1),
+        Mode::Process => 1,
+    };
+    let work = || -> anyhow::Result<()> {
+        loop {
+            let Some(cell) = queue.lock().map_err(|_| anyhow::anyhow!("poisoned"))?.pop() else {
+                return Ok(());
+            };
+            let text = cell_scenario(&base, &cell, &root)?;
+            let scenario = Scenario::parse(&text, &args.out.join(format!("{}.toml", cell.name())))?;
+            let t0 = Instant::now();
+            let trace = match args.mode {
+                Mode::Fast => fast_run(&scenario)?,
+                Mode::Process => {
+                    process_run(&text, &bin_dir, &args.out.join("runs"), &cell.name())?
+                }
+            };
+            let reference = reference_of(&scenario)?;
+            let m = metrics(
+                &trace,
+                &reference,
+                fieldmaps::rig::CoilLimits::default().coil_resistance_ohm,
+            );
+            bar.set_message(format!("{} RMSE {:.2} mm", cell.name(), m.rmse_mm));
+            bar.inc(1);
+            if cell.seed == 1 {
+                traces
+                    .lock()
+                    .map_err(|_| anyhow::anyhow!("poisoned"))?
+                    .push((cell.clone(), trace));
+            }
+            outcomes
+                .lock()
+                .map_err(|_| anyhow::anyhow!("poisoned"))?
+                .push(Outcome {
+                    cell,
+                    metrics: m,
+                    wall_s: t0.elapsed().as_secs_f64(),
+                });
+        }
+    };
+    std::thread::scope(|s| -> anyhow::Result<()> {
+        let handles: Vec<_> = (0..threads).map(|_| s.spawn(work)).collect();
+        for h in handles {
+            h.join().map_err(|_| anyhow::anyhow!("worker panicked"))??;
+        }
+        Ok(())
+    })?;
+    bar.finish();
+    let mut outcomes = outcomes
+        .into_inner()
+        .map_err(|_| anyhow::anyhow!("poisoned"))?;
+    outcomes.sort_by_key(|o| o.cell.name());
+    let mode = format!("{:?}", args.mode).to_lowercase();
+    report::write_csv(&outcomes, &args.out.join("results.csv"))?;
+    let table = report::markdown_table(&outcomes, &mode);
+    std::fs::write(args.out.join("table.md"), &table)?;
+    println!("{table}");
+    println!(
+        "{} runs in {:.1} s ({mode} mode, {threads} threads)",
+        outcomes.len(),
+        start.elapsed().as_secs_f64()
+    );
+    if report::register_font() {
+        report::rmse_bars(&outcomes, &args.out.join("rmse_bars.png"))
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        let traces = traces
+            .into_inner()
+            .map_err(|_| anyhow::anyhow!("poisoned"))?;
+        let reference = reference_of(&base)?;
+        let mut conditions: Vec<(i64, String)> = traces
+            .iter()
+            .map(|(c, _)| ((c.viscosity_cp * 10.0) as i64, c.flow.label().to_string()))
+            .collect();
+        conditions.sort();
+        conditions.dedup();
+        for (v, flow) in conditions {
+            let mut runs: Vec<(String, Vec<TraceRow>)> = traces
+                .iter()
+                .filter(|(c, _)| (c.viscosity_cp * 10.0) as i64 == v && c.flow.label() == flow)
+                .map(|(c, t)| (c.controller.clone(), t.clone()))
+                .collect();
+            runs.sort_by(|a, b| a.0.cmp(&b.0));
+            let title = format!("{} cP, {flow}", v as f64 / 10.0);
+            let file = format!(
+                "traces_{}cp_{}.png",
+                v as f64 / 10.0,
+                flow.replace([' ', '/'], "")
+            );
+            report::traces_figure(&runs, &reference, &title, &args.out.join(file))
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+        }
+    } else {
+        eprintln!("no DejaVu font found (apt install fonts-dejavu-core): figures skipped");
+    }
+    Ok(())
+}

@@ -1,0 +1,308 @@
+//! Reports: results.csv, a Markdown table laid out like the paper's Table I with the paper's
+//! numbers beside ours, and PNG figures (plotters).
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+use plotters::prelude::*;
+
+use crate::{Cell, FlowSetting, Metrics, TraceRow};
+
+/// One finished run.
+pub struct Outcome {
+    pub cell: Cell,
+    pub metrics: Metrics,
+    pub wall_s: f64,
+}
+
+/// The paper's numbers (RIG.md): RMSE / P95 / Max in mm as printed, or a note.
+fn paper(viscosity_cp: f64, flow: FlowSetting, controller: &str) -> &'static str {
+    let cp20 = viscosity_cp > 10.0;
+    match (cp20, flow, controller) {
+        (true, FlowSetting::Static, "pid") => "0.82 / 1.78 / 2.70",
+        (true, FlowSetting::Static, "mpc") => "1.57 / 2.77 / 4.40",
+        (true, FlowSetting::Static, "smc-dob") => "0.49 / 0.86 / 1.64",
+        (false, FlowSetting::Static, "pid") | (false, FlowSetting::Static, "mpc") => "failed",
+        (false, FlowSetting::Static, "smc-dob") => "1.05 / 1.90 / 3.21",
+        (true, FlowSetting::Q180, "pid") => "1.59 / – / 10.47",
+        (true, FlowSetting::Q180, "smc-dob") => "1.00 / – / 4.36",
+        (true, FlowSetting::Q180, "smc") => "≈10x SMC-DOB",
+        (true, FlowSetting::Q250, "smc-dob") => "< 2 / – / 8.2 (hand retune)",
+        (false, FlowSetting::Q180, "smc-dob") | (false, FlowSetting::Q250, "smc-dob") => {
+            "1.60 / < 4 / 5.64 (pulsatile)"
+        }
+        _ => "–",
+    }
+}
+
+fn mean_sd(values: &[f64]) -> (f64, f64) {
+    let n = values.len().max(1) as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
+    (mean, var.sqrt())
+}
+
+pub fn write_csv(outcomes: &[Outcome], path: &Path) -> std::io::Result<()> {
+    let mut out = String::from(
+        "viscosity_cp,flow,controller,seed,rmse_mm,p95_mm,max_mm,completed,wall_contact_frames,peak_current_a,energy_j,wall_s\n",
+    );
+    for o in outcomes {
+        let m = &o.metrics;
+        let _ = writeln!(
+            out,
+            "{},{},{},{},{:.4},{:.4},{:.4},{},{},{:.3},{:.3},{:.2}",
+            o.cell.viscosity_cp,
+            o.cell.flow.label(),
+            o.cell.controller,
+            o.cell.seed,
+            m.rmse_mm,
+            m.p95_mm,
+            m.max_mm,
+            m.completed,
+            m.wall_contact_frames,
+            m.peak_current_a,
+            m.energy_j,
+            o.wall_s
+        );
+    }
+    std::fs::write(path, out)
+}
+
+/// Groups trials by (viscosity, flow, controller).
+fn groups(outcomes: &[Outcome]) -> BTreeMap<(i64, FlowSetting, String), Vec<&Outcome>> {
+    let mut g: BTreeMap<(i64, FlowSetting, String), Vec<&Outcome>> = BTreeMap::new();
+    for o in outcomes {
+        g.entry((
+            -(o.cell.viscosity_cp * 10.0) as i64,
+            o.cell.flow,
+            o.cell.controller.clone(),
+        ))
+        .or_default()
+        .push(o);
+    }
+    g
+}
+
+pub fn markdown_table(outcomes: &[Outcome], mode: &str) -> String {
+    let mut out = format!(
+        "Mode: {mode}. Mean ± sd over trials; \"failed\" = error above {} mm for more than {} s or not at the end.\n\n\
+         | condition | controller | trials | completed | RMSE mm | P95 mm | Max mm | wall contacts | peak A | energy J | paper RMSE / P95 / Max |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|\n",
+        crate::FAIL_ERROR_M * 1e3,
+        crate::FAIL_TIME_S
+    );
+    for ((_, flow, controller), list) in groups(outcomes) {
+        let viscosity = list[0].cell.viscosity_cp;
+        let done = list.iter().filter(|o| o.metrics.completed).count();
+        let stat = |f: fn(&Metrics) -> f64| {
+            let (m, s) = mean_sd(&list.iter().map(|o| f(&o.metrics)).collect::<Vec<_>>());
+            format!("{m:.2} ± {s:.2}")
+        };
+        let _ = writeln!(
+            out,
+            "| {} cP, {} | {controller} | {} | {done}/{} | {} | {} | {} | {:.0} | {:.2} | {:.1} | {} |",
+            viscosity,
+            flow.label(),
+            list.len(),
+            list.len(),
+            stat(|m| m.rmse_mm),
+            stat(|m| m.p95_mm),
+            stat(|m| m.max_mm),
+            mean_sd(&list.iter().map(|o| o.metrics.wall_contact_frames as f64).collect::<Vec<_>>()).0,
+            mean_sd(&list.iter().map(|o| o.metrics.peak_current_a).collect::<Vec<_>>()).0,
+            mean_sd(&list.iter().map(|o| o.metrics.energy_j).collect::<Vec<_>>()).0,
+            paper(viscosity, flow, &controller)
+        );
+    }
+    out
+}
+
+/// Registers a TrueType font for figure text; figures are skipped without one.
+pub fn register_font() -> bool {
+    for path in [
+        "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+        "/usr/share/fonts/TTF/DejaVuSans.ttf",
+    ] {
+        if let Ok(bytes) = std::fs::read(path) {
+            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+            if plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok() {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+const COLORS: [RGBColor; 5] = [RED, BLUE, GREEN, MAGENTA, BLACK];
+
+type Res = Result<(), Box<dyn std::error::Error>>;
+
+/// RMSE bars per condition and controller.
+pub fn rmse_bars(outcomes: &[Outcome], path: &Path) -> Res {
+    let groups = groups(outcomes);
+    let conditions: Vec<(i64, FlowSetting)> = {
+        let mut c: Vec<_> = groups.keys().map(|(v, f, _)| (*v, *f)).collect();
+        c.dedup();
+        c
+    };
+    let controllers: Vec<String> = {
+        let mut c: Vec<String> = groups.keys().map(|(_, _, k)| k.clone()).collect();
+        c.sort();
+        c.dedup();
+        c
+    };
+    let max = groups
+        .values()
+        .flat_map(|l| l.iter().map(|o| o.metrics.rmse_mm))
+        .fold(1.0f64, f64::max)
+        .min(20.0);
+    let root = BitMapBackend::new(path, (1200, 600)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let n = conditions.len() as f64;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(
+            "RMSE by condition and controller (mean of trials)",
+            ("sans-serif", 22),
+        )
+        .margin(15)
+        .x_label_area_size(40)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..n, 0.0..max * 1.1)?;
+    chart
+        .configure_mesh()
+        .y_desc("RMSE (mm)")
+        .x_labels(conditions.len())
+        .x_label_formatter(&|x| {
+            conditions
+                .get(x.floor() as usize)
+                .map(|(v, f)| format!("{} cP {}", -*v as f64 / 10.0, f.label()))
+                .unwrap_or_default()
+        })
+        .draw()?;
+    let width = 0.8 / controllers.len() as f64;
+    for (k, controller) in controllers.iter().enumerate() {
+        let color = COLORS[k % COLORS.len()];
+        let bars: Vec<Rectangle<(f64, f64)>> = conditions
+            .iter()
+            .enumerate()
+            .filter_map(|(i, (v, f))| {
+                let list = groups.get(&(*v, *f, controller.clone()))?;
+                let (mean, _) =
+                    mean_sd(&list.iter().map(|o| o.metrics.rmse_mm).collect::<Vec<_>>());
+                let x0 = i as f64 + 0.1 + k as f64 * width;
+                Some(Rectangle::new(
+                    [(x0, 0.0), (x0 + width * 0.9, mean.min(max * 1.1))],
+                    color.filled(),
+                ))
+            })
+            .collect();
+        chart
+            .draw_series(bars)?
+            .label(controller.clone())
+            .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 10, y + 5)], color.filled()));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE)
+        .border_style(BLACK)
+        .draw()?;
+    root.present()?;
+    Ok(())
+}
+
+/// Tracking error vs time and the path in the plane, one trace per controller.
+pub fn traces_figure(
+    traces: &[(String, Vec<TraceRow>)],
+    reference: &millinav_control::reference::Reference,
+    title: &str,
+    path: &Path,
+) -> Res {
+    let root = BitMapBackend::new(path, (1400, 600)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let (left, right) = root.split_horizontally(600);
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for p in reference.waypoints() {
+        x0 = x0.min(p.x * 1e3);
+        x1 = x1.max(p.x * 1e3);
+        y0 = y0.min(p.y * 1e3);
+        y1 = y1.max(p.y * 1e3);
+    }
+    let pad = 5.0;
+    let mut plane = ChartBuilder::on(&left)
+        .caption(format!("{title}: paths"), ("sans-serif", 20))
+        .margin(10)
+        .x_label_area_size(35)
+        .y_label_area_size(45)
+        .build_cartesian_2d(x0 - pad..x1 + pad, y0 - pad..y1 + pad)?;
+    plane
+        .configure_mesh()
+        .x_desc("x (mm)")
+        .y_desc("y (mm)")
+        .draw()?;
+    plane
+        .draw_series(LineSeries::new(
+            reference.waypoints().iter().map(|p| (p.x * 1e3, p.y * 1e3)),
+            BLACK.stroke_width(2),
+        ))?
+        .label("reference")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 15, y)], BLACK));
+    let t_max = traces
+        .iter()
+        .flat_map(|(_, t)| t.last().map(|r| r.time_s))
+        .fold(1.0f64, f64::max);
+    let mut e_max = 1.0f64;
+    for (k, (name, trace)) in traces.iter().enumerate() {
+        let color = COLORS[k % COLORS.len()];
+        plane
+            .draw_series(LineSeries::new(
+                trace
+                    .iter()
+                    .map(|r| (r.position_m.x * 1e3, r.position_m.y * 1e3)),
+                color,
+            ))?
+            .label(name.clone())
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 15, y)], color));
+        for r in trace {
+            e_max = e_max.max((r.position_m - reference.sample(r.time_s).position_m).norm() * 1e3);
+        }
+    }
+    plane
+        .configure_series_labels()
+        .background_style(WHITE)
+        .border_style(BLACK)
+        .draw()?;
+    let mut errors = ChartBuilder::on(&right)
+        .caption(format!("{title}: tracking error"), ("sans-serif", 20))
+        .margin(10)
+        .x_label_area_size(35)
+        .y_label_area_size(45)
+        .build_cartesian_2d(0.0..t_max, 0.0..e_max.min(20.0) * 1.05)?;
+    errors
+        .configure_mesh()
+        .x_desc("time (s)")
+        .y_desc("error (mm)")
+        .draw()?;
+    for (k, (name, trace)) in traces.iter().enumerate() {
+        let color = COLORS[k % COLORS.len()];
+        errors
+            .draw_series(LineSeries::new(
+                trace.iter().map(|r| {
+                    (
+                        r.time_s,
+                        (r.position_m - reference.sample(r.time_s).position_m).norm() * 1e3,
+                    )
+                }),
+                color,
+            ))?
+            .label(name.clone())
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 15, y)], color));
+    }
+    errors
+        .configure_series_labels()
+        .background_style(WHITE)
+        .border_style(BLACK)
+        .draw()?;
+    root.present()?;
+    Ok(())
+}

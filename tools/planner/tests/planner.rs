@@ -1,0 +1,260 @@
+//! Planner tests: A* optimality against a brute-force Dijkstra on small grids, the default
+//! phantom plan, and the error cases.
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+
+use fieldmaps::phantom::{ImageGeometry, Phantom};
+use millinav_planner::{
+    astar_grid, distance_transform, geometry_for, plan, step_cost, CostGrid, Mask, PlanError,
+    PlannerConfig,
+};
+use nalgebra::Vector2;
+
+struct Lcg(u64);
+impl Lcg {
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// Plain Dijkstra over every cell, written independently of the planner's neighbour code.
+fn dijkstra(grid: &CostGrid, start: (u32, u32), goal: (u32, u32)) -> Option<u64> {
+    let (w, h) = (grid.width as i64, grid.height as i64);
+    let idx = |c: i64, r: i64| (r * w + c) as usize;
+    let mut dist = vec![u64::MAX; (w * h) as usize];
+    let mut heap = BinaryHeap::new();
+    grid.cost(start.0, start.1)?;
+    dist[idx(start.0.into(), start.1.into())] = 0;
+    heap.push(Reverse((0u64, i64::from(start.0), i64::from(start.1))));
+    while let Some(Reverse((d, c, r))) = heap.pop() {
+        if d > dist[idx(c, r)] {
+            continue;
+        }
+        if (c, r) == (i64::from(goal.0), i64::from(goal.1)) {
+            return Some(d);
+        }
+        for (dc, dr) in [
+            (-1, -1),
+            (0, -1),
+            (1, -1),
+            (-1, 0),
+            (1, 0),
+            (-1, 1),
+            (0, 1),
+            (1, 1),
+        ] {
+            let (nc, nr) = (c + dc, r + dr);
+            if nc < 0 || nr < 0 || nc >= w || nr >= h {
+                continue;
+            }
+            let Some(cell) = grid.cells[idx(nc, nr)] else {
+                continue;
+            };
+            let nd = d + step_cost(cell, dc != 0 && dr != 0);
+            if nd < dist[idx(nc, nr)] {
+                dist[idx(nc, nr)] = nd;
+                heap.push(Reverse((nd, nc, nr)));
+            }
+        }
+    }
+    None
+}
+
+#[test]
+fn astar_cost_is_optimal_on_small_grids() {
+    let mut rng = Lcg(3);
+    let (mut reachable, mut unreachable) = (0, 0);
+    for case in 0..400 {
+        let (w, h) = (4 + (case % 9) as u32, 3 + (case % 7) as u32);
+        let obstacle_rate = 0.1 + 0.3 * rng.next();
+        let cells: Vec<Option<f64>> = (0..w * h)
+            .map(|_| (rng.next() >= obstacle_rate).then(|| 1.0 + 1.5 * rng.next()))
+            .collect();
+        let grid = CostGrid {
+            width: w,
+            height: h,
+            cells,
+        };
+        let pick = |rng: &mut Lcg| {
+            (
+                (rng.next() * f64::from(w)) as u32 % w,
+                (rng.next() * f64::from(h)) as u32 % h,
+            )
+        };
+        let (start, goal) = (pick(&mut rng), pick(&mut rng));
+        let best = dijkstra(&grid, start, goal);
+        let found = astar_grid(&grid, start, goal);
+        match (best, found) {
+            (None, None) => unreachable += 1,
+            (Some(best), Some((path, cost))) => {
+                reachable += 1;
+                assert_eq!(cost, best, "case {case}: A* {cost} vs Dijkstra {best}");
+                assert_eq!(path.first(), Some(&start));
+                assert_eq!(path.last(), Some(&goal));
+                let mut recomputed = 0;
+                for pair in path.windows(2) {
+                    let (a, b) = (pair[0], pair[1]);
+                    let (dc, dr) = (a.0.abs_diff(b.0), a.1.abs_diff(b.1));
+                    assert!(
+                        dc <= 1 && dr <= 1 && dc + dr > 0,
+                        "case {case}: not 8-connected"
+                    );
+                    let cell = grid.cost(b.0, b.1).expect("path stays on free cells");
+                    recomputed += step_cost(cell, dc == 1 && dr == 1);
+                }
+                assert_eq!(recomputed, cost, "case {case}");
+            }
+            (best, found) => panic!("case {case}: Dijkstra {best:?}, A* {found:?}"),
+        }
+    }
+    assert!(
+        reachable > 100 && unreachable > 10,
+        "{reachable} / {unreachable}"
+    );
+}
+
+#[test]
+fn default_phantom_plan() {
+    let phantom = Phantom::default_heart();
+    let geom = ImageGeometry::default();
+    let mask = Mask::from_phantom(&phantom, &geom).unwrap();
+    let config = PlannerConfig::default();
+    let p = plan(
+        &mask,
+        &geom,
+        &phantom.default_start(),
+        &phantom.default_end(),
+        &config,
+    )
+    .unwrap();
+    let wp = &p.waypoints_m;
+    assert_eq!(wp.len(), 10);
+    eprintln!(
+        "default plan: {} A* px, cost {:.1}, smoothed length {:.2} mm, waypoint polyline {:.2} mm",
+        p.pixel_path.len(),
+        p.cost,
+        p.smoothed_length_m * 1e3,
+        p.waypoint_length_m() * 1e3
+    );
+    for w in p.waypoints_mm() {
+        eprintln!("  [{:.3}, {:.3}]", w[0], w[1]);
+    }
+    // Start and end have ≥ 5 mm clearance: they are kept (within a pixel).
+    let px = geom.mm_per_px * 1e-3;
+    assert!((wp[0] - phantom.default_start()).norm() < px);
+    assert!((wp[9] - phantom.default_end()).norm() < px);
+    // Evenly spaced along the smoothed path: chords no longer than arc/9.
+    let step = p.smoothed_length_m / 9.0;
+    for pair in wp.windows(2) {
+        assert!((pair[1] - pair[0]).norm() <= step * (1.0 + 1e-9) + 1e-12);
+    }
+    // Every waypoint keeps (almost) the 5 mm clearance, measured on the mask's distance
+    // transform (the phantom's min-of-primitives SDF underestimates clearance at junctions);
+    // smoothing may cut a corner slightly.
+    let dist = distance_transform(&mask).unwrap();
+    for w in wp {
+        let (c, r) = geom.pixel_of(w).unwrap();
+        let clearance_m = f64::from(dist[(r * geom.width_px + c) as usize]) * px;
+        eprintln!("  clearance {:.3} mm", clearance_m * 1e3);
+        assert!(clearance_m > config.clearance_m - 0.3e-3, "{w:?}");
+    }
+    // The smoothed path stays inside the canal everywhere.
+    for s in &p.smoothed_px {
+        assert!(phantom.contains(&geom.px_to_world(s[0], s[1])));
+    }
+}
+
+fn two_rooms() -> (Mask, ImageGeometry) {
+    // 200 × 100 px at 0.5 mm/px: two 40 mm squares separated by a 2 px wall... plus nothing else.
+    let (w, h) = (200u32, 100u32);
+    let mut data = vec![0u8; (w * h) as usize];
+    for r in 10..90 {
+        for c in 10..95 {
+            data[(r * w + c) as usize] = 255;
+        }
+        for c in 105..190 {
+            data[(r * w + c) as usize] = 255;
+        }
+    }
+    (Mask::new(w, h, data).unwrap(), geometry_for(w, h, 0.5))
+}
+
+#[test]
+fn clear_errors() {
+    let (mask, geom) = two_rooms();
+    let cfg = PlannerConfig::default();
+    let left = geom.px_to_world(50.0, 50.0);
+    let right = geom.px_to_world(150.0, 50.0);
+    // Same room: fine.
+    assert!(plan(&mask, &geom, &left, &geom.px_to_world(60.0, 30.0), &cfg).is_ok());
+    let e = plan(&mask, &geom, &left, &right, &cfg).unwrap_err();
+    assert!(matches!(e, PlanError::NotConnected { .. }), "{e}");
+    eprintln!("{e}");
+    let outside = Vector2::new(1.0, 0.0);
+    let e = plan(&mask, &geom, &outside, &right, &cfg).unwrap_err();
+    assert!(
+        matches!(e, PlanError::OutsideImage { which: "start", .. }),
+        "{e}"
+    );
+    let wall = geom.px_to_world(100.0, 50.0);
+    let e = plan(&mask, &geom, &left, &wall, &cfg).unwrap_err();
+    assert!(
+        matches!(e, PlanError::OutsideCanal { which: "end", .. }),
+        "{e}"
+    );
+    let huge = PlannerConfig {
+        clearance_m: 0.05,
+        ..PlannerConfig::default()
+    };
+    let e = plan(&mask, &geom, &left, &right, &huge).unwrap_err();
+    assert!(matches!(e, PlanError::NoFeasibleCore { .. }), "{e}");
+    let bad = PlannerConfig {
+        w_clear: f64::NAN,
+        ..PlannerConfig::default()
+    };
+    assert!(matches!(
+        plan(&mask, &geom, &left, &right, &bad),
+        Err(PlanError::Config(_))
+    ));
+    assert!(Mask::new(3, 3, vec![0; 8]).is_err());
+    assert!(matches!(
+        Mask::load(std::path::Path::new("/nonexistent/mask.png")),
+        Err(PlanError::MaskUnreadable(_))
+    ));
+}
+
+#[test]
+fn start_near_a_wall_is_projected_into_the_core() {
+    let (mask, geom) = two_rooms();
+    // 1 px from the left room's wall: outside the 5 mm (10 px) core.
+    let near_wall = geom.px_to_world(11.0, 50.0);
+    let p = plan(
+        &mask,
+        &geom,
+        &near_wall,
+        &geom.px_to_world(80.0, 50.0),
+        &PlannerConfig::default(),
+    )
+    .unwrap();
+    let (c, _) = p.start_px;
+    assert!(c >= 19, "projected to {:?}", p.start_px);
+}
+
+#[test]
+fn png_mask_roundtrip() {
+    use opencv::core as cv;
+    let (mask, _) = two_rooms();
+    let mat =
+        cv::Mat::new_rows_cols_with_data::<u8>(mask.height as i32, mask.width as i32, &mask.data)
+            .unwrap();
+    let path = std::env::temp_dir().join(format!("millinav-planner-{}.png", std::process::id()));
+    assert!(opencv::imgcodecs::imwrite_def(path.to_str().unwrap(), &mat).unwrap());
+    let loaded = Mask::load(&path).unwrap();
+    let _ = std::fs::remove_file(&path);
+    assert_eq!(loaded, mask);
+}
