@@ -48,6 +48,13 @@ struct Args {
     #[arg(long)]
     scenario_template: Option<PathBuf>,
     /// Output file (default: stdout).
+    /// Also write a Rerun recording (.rrd) of the plan drawn over the top-view image: the canal
+    /// mask, or `--image` (e.g. a camera frame) when given.
+    #[arg(long)]
+    rrd: Option<std::path::PathBuf>,
+    /// Background image for `--rrd` (PNG/JPEG of the same size as the mask).
+    #[arg(long)]
+    image: Option<std::path::PathBuf>,
     #[arg(short, long)]
     output: Option<PathBuf>,
 }
@@ -102,6 +109,10 @@ fn main() -> anyhow::Result<()> {
         waypoint_length_mm = plan.waypoint_length_m() * 1e3,
         "planned"
     );
+    if let Some(path) = &args.rrd {
+        log_plan(path, args.image.as_deref(), &mask, &plan)?;
+        tracing::info!(recording = %path.display(), "plan written to Rerun");
+    }
     let text = match &args.scenario_template {
         Some(path) => {
             let template = std::fs::read_to_string(path)
@@ -128,5 +139,66 @@ fn main() -> anyhow::Result<()> {
         }
         None => print!("{text}"),
     }
+    Ok(())
+}
+
+/// Writes the plan over the top-view image to a Rerun recording (pixel coordinates).
+fn log_plan(
+    path: &std::path::Path,
+    image: Option<&std::path::Path>,
+    mask: &Mask,
+    plan: &millinav_planner::Plan,
+) -> anyhow::Result<()> {
+    use opencv::prelude::*;
+    let rec = rerun::RecordingStreamBuilder::new("millinav").save(path)?;
+    let (w, h) = (mask.width as usize, mask.height as usize);
+    let rgb: Vec<u8> = match image {
+        Some(file) => {
+            let bgr = opencv::imgcodecs::imread(file, opencv::imgcodecs::IMREAD_COLOR)?;
+            if bgr.empty() || bgr.cols() as usize != w || bgr.rows() as usize != h {
+                anyhow::bail!("{}: unreadable or not {w}x{h}", file.display());
+            }
+            let mut rgb = opencv::core::Mat::default();
+            opencv::imgproc::cvt_color_def(&bgr, &mut rgb, opencv::imgproc::COLOR_BGR2RGB)?;
+            rgb.data_bytes()?.to_vec()
+        }
+        None => (0..w * h)
+            .flat_map(|i| {
+                let v = if mask.is_canal((i % w) as u32, (i / w) as u32) {
+                    230
+                } else {
+                    90
+                };
+                [v, v, v]
+            })
+            .collect(),
+    };
+    rec.log_static(
+        "camera/image",
+        &rerun::Image::from_rgb24(rgb, [w as u32, h as u32]),
+    )?;
+    let astar: Vec<[f32; 2]> = plan
+        .pixel_path
+        .iter()
+        .map(|(c, r)| [*c as f32, *r as f32])
+        .collect();
+    rec.log_static("camera/plan/astar", &rerun::LineStrips2D::new([astar]))?;
+    let smooth: Vec<[f32; 2]> = plan
+        .smoothed_px
+        .iter()
+        .map(|p| [p[0] as f32, p[1] as f32])
+        .collect();
+    rec.log_static("camera/plan/smoothed", &rerun::LineStrips2D::new([smooth]))?;
+    let ends = [
+        [plan.start_px.0 as f32, plan.start_px.1 as f32],
+        [plan.end_px.0 as f32, plan.end_px.1 as f32],
+    ];
+    rec.log_static(
+        "camera/plan/start_end",
+        &rerun::Points2D::new(ends)
+            .with_labels(["start", "end"])
+            .with_radii([6.0]),
+    )?;
+    rec.flush_blocking()?;
     Ok(())
 }
