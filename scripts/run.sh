@@ -4,11 +4,7 @@
 #   ./scripts/run.sh scenarios/short.toml --viewer none
 set -euo pipefail
 cd "$(dirname "$0")/.."
-./scripts/setup.sh
-export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/millinav-target}"
-export MILLINAV_VENV="${MILLINAV_VENV:-$HOME/.cache/millinav/venv}"
-export PATH="$MILLINAV_VENV/bin:$PATH"
-cargo build --release --workspace --locked
+source scripts/env.sh
 if [ $# -eq 0 ]; then
   set -- scenarios/default.toml
 fi

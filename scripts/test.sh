@@ -2,10 +2,5 @@
 # The test command: installs prerequisites (idempotent), builds, and runs every test.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-./scripts/setup.sh
-export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/millinav-target}"
-export MILLINAV_VENV="${MILLINAV_VENV:-$HOME/.cache/millinav/venv}"
-export PATH="$MILLINAV_VENV/bin:$PATH"
-# One feature-unified build of the whole workspace serves the binaries and every test.
-cargo build --release --workspace --locked
+source scripts/env.sh
 cargo test --release --workspace --locked

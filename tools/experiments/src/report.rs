@@ -134,7 +134,7 @@ pub fn register_font() -> bool {
     false
 }
 
-const COLORS: [RGBColor; 5] = [RED, BLUE, GREEN, MAGENTA, BLACK];
+const COLORS: [RGBColor; 5] = [RED, BLUE, GREEN, MAGENTA, RGBColor(255, 140, 0)];
 
 type Res = Result<(), Box<dyn std::error::Error>>;
 
