@@ -123,10 +123,22 @@ fn inject(run: &RunSet, service: &'static str, signal: Signal) -> FaultOutcome {
         .rfind(|e| e.monotonic_ns <= injected)
         .map(|e| e.monotonic_ns)
         .unwrap_or(injected);
-    let safe = teensy
+    let zero = teensy
         .iter()
         .find(|e| e.monotonic_ns > injected && e.max_abs_current_a == 0.0)
-        .unwrap_or_else(|| panic!("coils never reached zero after {signal} of {service}"));
+        .map(|e| e.monotonic_ns);
+    // A coilbus restarted faster than the Teensy watchdog resumes the link before the watchdog
+    // has to act: then the gap without frames is what the bound applies to.
+    let next_frame = teensy
+        .iter()
+        .find(|e| e.monotonic_ns > injected)
+        .map(|e| e.monotonic_ns);
+    let safe_ns = match (zero, next_frame) {
+        (Some(z), Some(n)) if service == "coilbus" && n < z => n,
+        (Some(z), _) => z,
+        (None, Some(n)) if service == "coilbus" => n,
+        _ => panic!("coils never reached zero after {signal} of {service}"),
+    };
     let resumed = teensy
         .iter()
         .find(|e| e.monotonic_ns > restart_ns && e.kind == "command" && e.max_abs_current_a > 0.0)
@@ -145,7 +157,7 @@ fn inject(run: &RunSet, service: &'static str, signal: Signal) -> FaultOutcome {
         },
         detection_ms: ms(injected, detected.monotonic_ns),
         // From the last frame the Teensy got before the fault (the deadline's start).
-        safe_ms: ms(last_before.min(injected), safe.monotonic_ns),
+        safe_ms: ms(last_before.min(injected), safe_ns),
         resume_ms: ms(injected, resumed.monotonic_ns),
         safe_bound_ms,
     }
