@@ -12,6 +12,8 @@ use millinav_kit::clock::monotonic_ns;
 use millinav_tests::{scenario_text, RunSet, TeensyEvent};
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use shm_schemas::deadlines;
 
 /// Scheduling slack on top of a deadline on a loaded 2-core machine.
@@ -36,15 +38,14 @@ fn circle_scenario(duration_s: f64, seed: u64) -> String {
     .replace("seed = 3", &format!("seed = {seed}"))
 }
 
-/// Small deterministic generator for fault times and targets.
-struct Lcg(u64);
-impl Lcg {
+/// Seeded generator for fault times and targets: uniform in [0, 1).
+struct FaultRng(ChaCha8Rng);
+impl FaultRng {
+    fn new(seed: u64) -> Self {
+        Self(ChaCha8Rng::seed_from_u64(seed))
+    }
     fn next(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+        self.0.random_range(0.0..1.0)
     }
 }
 
@@ -201,7 +202,7 @@ fn every_service_killed_and_hung_in_turn() {
         wait_tracking(&run, 0, 100, Duration::from_secs(60)),
         "loop never started"
     );
-    let mut rng = Lcg(0x5eed);
+    let mut rng = FaultRng::new(0x5eed);
     let mut plan: Vec<(&'static str, Signal)> = Vec::new();
     for service in ["vision", "flow", "control", "coilbus"] {
         plan.push((service, Signal::SIGKILL));
@@ -273,7 +274,7 @@ fn soak_random_kills() {
         wait_tracking(&run, 0, 100, Duration::from_secs(60)),
         "loop never started"
     );
-    let mut rng = Lcg(kills as u64 + 17);
+    let mut rng = FaultRng::new(kills as u64 + 17);
     let services = ["vision", "flow", "control", "coilbus"];
     let start = Instant::now();
     for k in 0..kills {

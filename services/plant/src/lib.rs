@@ -328,6 +328,25 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Opens a CSV log for appending (a restarted plant continues the same file), writing the
+/// header only when the file is new.
+fn open_csv_append(
+    path: &std::path::Path,
+    header: &str,
+) -> anyhow::Result<std::io::BufWriter<std::fs::File>> {
+    use std::io::Write;
+    let fresh = !path.exists();
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)?;
+    let mut out = std::io::BufWriter::new(file);
+    if fresh {
+        writeln!(out, "{header}")?;
+    }
+    Ok(out)
+}
+
 /// File name of the ground-truth trace in a run directory.
 pub const TRUTH_CSV: &str = "truth.csv";
 
@@ -341,17 +360,8 @@ impl TruthCsv {
         "frame_seq,sim_time_s,x_m,y_m,vx_mps,vy_mps,heading_rad,flow_x_mps,flow_y_mps,wall_contact,max_abs_current_a,lockstep_misses";
 
     pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
-        use std::io::Write;
         // Append: a restarted plant continues the same trace.
-        let fresh = !path.exists();
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)?;
-        let mut out = std::io::BufWriter::new(file);
-        if fresh {
-            writeln!(out, "{}", Self::HEADER)?;
-        }
+        let out = open_csv_append(path, Self::HEADER)?;
         Ok(Self { out })
     }
 
@@ -402,16 +412,7 @@ impl ContactLog {
         "frame_seq,sim_time_s,event,x_m,y_m,contact_events,contact_time_s";
 
     pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
-        use std::io::Write;
-        let fresh = !path.exists();
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)?;
-        let mut out = std::io::BufWriter::new(file);
-        if fresh {
-            writeln!(out, "{}", Self::HEADER)?;
-        }
+        let out = open_csv_append(path, Self::HEADER)?;
         Ok(Self {
             out,
             touching: false,
