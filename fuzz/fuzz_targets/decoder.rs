@@ -7,5 +7,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    millinav_coilbus::protocol::check_decoder_invariants(data);
+    millinav_teensy_protocol::check_decoder_invariants(data);
 });

@@ -4,7 +4,9 @@
 //! when the port goes away.
 
 pub mod link;
-pub mod protocol;
+pub use millinav_teensy_protocol as protocol;
+
+const _: () = assert!(protocol::COIL_COUNT == shm_schemas::COIL_COUNT);
 pub mod safety;
 
 use std::path::PathBuf;
@@ -25,6 +27,9 @@ use shm_schemas::{
 use crate::link::SerialLink;
 use crate::protocol::{Message, FLAG_SAFE_ZERO};
 use crate::safety::{clamp_currents, CurrentLimits, StaleFilter};
+
+/// Serial-link changes (`open`, `lost`) in a run directory: monotonic_ns,event,detail.
+pub const LINK_EVENTS_CSV: &str = "coilbus_link.csv";
 
 /// Name of the emulated Teensy's pty link inside a run directory.
 pub const EMULATED_PORT_LINK: &str = "teensy.pty";
@@ -193,6 +198,11 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     let commands = Inbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
     let status_out = Outbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
     let mut link = SerialLink::new(port_path.clone(), config.baud);
+    let mut link_log = millinav_kit::open_csv_append(
+        &rt.env.run_dir.join(LINK_EVENTS_CSV),
+        "monotonic_ns,event,detail",
+    )
+    .context("opening the link log")?;
     let mut bus = CoilBus::new(
         config.limits.clone(),
         Duration::from_millis(config.command_deadline_ms),
@@ -241,6 +251,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                 bus.status.acks_received += 1;
             }
         }
+        log_link_events(&mut link_log, link.take_events());
         if deadline_missed {
             rt.heartbeat.deadline_misses += 1;
         }
@@ -290,6 +301,15 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     tracing::info!("coilbus stopped; coils zeroed");
     let _ = rt.rec.flush_blocking();
     Ok(())
+}
+
+fn log_link_events(log: &mut impl std::io::Write, events: Vec<link::LinkEvent>) {
+    for event in events {
+        // Commas would split the CSV field; the detail is free text.
+        let detail = event.detail.replace(',', ";");
+        let _ = writeln!(log, "{},{},{detail}", event.monotonic_ns, event.kind);
+    }
+    let _ = log.flush();
 }
 
 fn commands_update(status_out: &Outbox<CoilStatus>, rt: &Runtime) {

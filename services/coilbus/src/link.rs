@@ -11,6 +11,18 @@ use crate::protocol::{encode, Decoder, Message, Packet};
 
 const RECONNECT_INTERVAL: Duration = Duration::from_millis(100);
 const IO_TIMEOUT: Duration = Duration::from_millis(5);
+/// The Teensy sends telemetry every 50 ms; this long without a byte means it hung or the link
+/// is dead even though the device node is still there, so the port is closed and reopened.
+pub const LINK_SILENCE: Duration = Duration::from_millis(200);
+
+/// A change of the link, with the run clock's time, for the run directory's link log.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LinkEvent {
+    pub monotonic_ns: u64,
+    /// `open` or `lost`.
+    pub kind: &'static str,
+    pub detail: String,
+}
 
 pub struct SerialLink {
     path: PathBuf,
@@ -21,6 +33,8 @@ pub struct SerialLink {
     last_attempt: Option<Instant>,
     pub reconnects: u64,
     was_open: bool,
+    last_rx: Option<Instant>,
+    events: Vec<LinkEvent>,
 }
 
 impl SerialLink {
@@ -34,6 +48,8 @@ impl SerialLink {
             last_attempt: None,
             reconnects: 0,
             was_open: false,
+            last_rx: None,
+            events: Vec::new(),
         }
     }
 
@@ -45,8 +61,33 @@ impl SerialLink {
         self.decoder.counters.errors()
     }
 
-    /// Tries to (re)open the port, at most once per reconnect interval.
+    /// Link changes since the last call.
+    pub fn take_events(&mut self) -> Vec<LinkEvent> {
+        std::mem::take(&mut self.events)
+    }
+
+    fn record(&mut self, kind: &'static str, detail: String) {
+        self.events.push(LinkEvent {
+            monotonic_ns: millinav_kit::clock::monotonic_ns(),
+            kind,
+            detail,
+        });
+    }
+
+    /// Closes a port that has been silent for `LINK_SILENCE`, then tries to (re)open the port,
+    /// at most once per reconnect interval.
     pub fn ensure_open(&mut self, now: Instant) {
+        if self.port.is_some()
+            && self
+                .last_rx
+                .is_some_and(|t| now.duration_since(t) > LINK_SILENCE)
+        {
+            let why = std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                format!("no byte from the Teensy for {LINK_SILENCE:?}"),
+            );
+            self.drop_port(&why);
+        }
         if self.port.is_some() {
             return;
         }
@@ -71,6 +112,8 @@ impl SerialLink {
                 self.was_open = true;
                 tracing::info!(port = %path, "serial link open");
                 self.port = Some(port);
+                self.last_rx = Some(now);
+                self.record("open", path);
             }
             Err(e) => tracing::debug!(port = %path, "serial open failed: {e}"),
         }
@@ -79,6 +122,7 @@ impl SerialLink {
     fn drop_port(&mut self, why: &std::io::Error) {
         tracing::warn!(port = %self.path.display(), "serial link lost: {why}");
         self.port = None;
+        self.record("lost", why.to_string());
     }
 
     /// Encodes and writes one message; false (and the port closed for reconnect) on failure.
@@ -118,7 +162,12 @@ impl SerialLink {
         }
         let mut buf = vec![0u8; waiting.min(64 * 1024)];
         match port.read(&mut buf) {
-            Ok(n) => self.decoder.push(&buf[..n]),
+            Ok(n) => {
+                if n > 0 {
+                    self.last_rx = Some(Instant::now());
+                }
+                self.decoder.push(&buf[..n])
+            }
             Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Vec::new(),
             Err(e) => {
                 self.drop_port(&e);

@@ -20,10 +20,12 @@
 //!
 //! The decoder resynchronises on the sync word after any corruption and counts what it dropped;
 //! it never panics on arbitrary input. The full description (tables, CRC parameters, watchdog
-//! semantics) is in `services/coilbus/PROTOCOL.md`.
+//! semantics) is in `services/teensy_protocol/PROTOCOL.md`.
 
 use crc::{Crc, CRC_16_IBM_3740};
-use shm_schemas::COIL_COUNT;
+/// Coils addressed by one frame; coilbus asserts at compile time that this equals
+/// `shm_schemas::COIL_COUNT` (kept here so the crate needs nothing but `crc`).
+pub const COIL_COUNT: usize = 12;
 
 pub const SYNC: [u8; 2] = [0xA5, 0x5A];
 pub const HEADER_LEN: usize = 2 + 1 + 2 + 4;
