@@ -1,6 +1,12 @@
 //! Fault-injection suite: during one lockstep tracking run, SIGKILL and SIGSTOP (a hang) each of
-//! vision, flow, control and coilbus at seeded random times, then check the safety invariants
-//! and print a per-service table. A soak variant kills random services many times.
+//! vision, flow, control and coilbus at seeded random times, and hit the plant's emulated Teensy
+//! link the same two ways (SIGUSR1 to the plant pulls the USB cable; SIGUSR2 stalls the board's
+//! firmware), then check the safety invariants and print a per-service table. A soak variant
+//! kills random services (and unplugs the link) many times.
+//!
+//! For the Teensy link, "detection" is coilbus noticing the link is gone (write error or
+//! `LINK_SILENCE` without telemetry, from its link log) and "restart" is the board coming back
+//! (replugged / rebooted) with coilbus reconnecting on its own.
 //!
 //! Table: `cargo test --release --workspace --test fault_matrix -- --nocapture`
 //! Long soak (≥ 100 kills): `MILLINAV_SOAK_KILLS=120 cargo test --release --workspace --test fault_matrix soak -- --nocapture`
@@ -49,6 +55,34 @@ impl FaultRng {
     }
 }
 
+/// The Teensy link's row in the table.
+const TEENSY_LINK: &str = "teensy-link";
+
+/// One fault: a signal to a service process, or a link fault injected through the plant.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Fault {
+    Process(&'static str, Signal),
+    LinkUnplug,
+    LinkHang,
+}
+
+impl Fault {
+    fn service(self) -> &'static str {
+        match self {
+            Fault::Process(service, _) => service,
+            Fault::LinkUnplug | Fault::LinkHang => TEENSY_LINK,
+        }
+    }
+    fn label(self) -> &'static str {
+        match self {
+            Fault::Process(_, Signal::SIGKILL) => "SIGKILL",
+            Fault::Process(_, _) => "SIGSTOP",
+            Fault::LinkUnplug => "unplug",
+            Fault::LinkHang => "hang",
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 struct FaultOutcome {
     service: &'static str,
@@ -84,40 +118,84 @@ fn wait_tracking(run: &RunSet, after_ns: u64, commands: usize, timeout: Duration
     false
 }
 
+/// Polls `find` until it returns a time or `timeout` passes.
+fn wait_for(timeout: Duration, mut find: impl FnMut() -> Option<u64>) -> Option<u64> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(t) = find() {
+            return Some(t);
+        }
+        if Instant::now() >= deadline {
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 /// Injects one fault and measures detection, time to safe state and time to resume.
-fn inject(run: &RunSet, service: &'static str, signal: Signal) -> FaultOutcome {
-    let pid = run.pid_of(service).expect("pid");
+fn inject(run: &RunSet, fault: Fault) -> FaultOutcome {
+    let service = fault.service();
+    let (pid, signal) = match fault {
+        Fault::Process(service, signal) => (run.pid_of(service).expect("pid"), signal),
+        Fault::LinkUnplug => (run.pid_of("plant").expect("pid"), Signal::SIGUSR1),
+        Fault::LinkHang => (run.pid_of("plant").expect("pid"), Signal::SIGUSR2),
+    };
     let injected = monotonic_ns();
     kill(Pid::from_raw(pid), signal).expect("signal");
-    let detected_event = if signal == Signal::SIGKILL {
-        "exit"
-    } else {
-        "heartbeat_missed"
+    let label = fault.label();
+    // Detection: the supervisor reports the exit / missed heartbeat; for the link, coilbus
+    // reports it lost.
+    let detected_ns = match fault {
+        Fault::Process(_, signal) => {
+            let event = if signal == Signal::SIGKILL {
+                "exit"
+            } else {
+                "heartbeat_missed"
+            };
+            wait_for(Duration::from_secs(20), || {
+                run.supervisor_events()
+                    .unwrap_or_default()
+                    .iter()
+                    .find(|e| e.service == service && e.event == event && e.monotonic_ns > injected)
+                    .map(|e| e.monotonic_ns)
+            })
+            .unwrap_or_else(|| panic!("supervisor did not report {event} for {service}"))
+        }
+        Fault::LinkUnplug | Fault::LinkHang => wait_for(Duration::from_secs(20), || {
+            run.link_events()
+                .unwrap_or_default()
+                .iter()
+                .find(|(t, e)| *t > injected && e == "lost")
+                .map(|(t, _)| *t)
+        })
+        .unwrap_or_else(|| panic!("coilbus did not notice the Teensy link {label}")),
     };
-    // Recovery: the restarted service is up and commands with current flow again.
-    let deadline = Instant::now() + Duration::from_secs(20);
-    let mut restart_ns = None;
-    while Instant::now() < deadline {
-        restart_ns = run
+    // Recovery: the service is back (restarted / replugged / rebooted) and commands with
+    // current flow again.
+    let back_events: &[&str] = match fault {
+        Fault::Process(..) => &["restart"],
+        Fault::LinkUnplug => &["replugged"],
+        Fault::LinkHang => &["rebooted"],
+    };
+    let restart_ns = wait_for(Duration::from_secs(20), || match fault {
+        Fault::Process(..) => run
             .supervisor_events()
             .unwrap_or_default()
             .iter()
             .find(|e| e.service == service && e.event == "restart" && e.monotonic_ns > injected)
-            .map(|e| e.monotonic_ns);
-        if let Some(r) = restart_ns {
-            if wait_tracking(run, r, 5, Duration::from_secs(15)) {
-                break;
-            }
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let restart_ns =
-        restart_ns.unwrap_or_else(|| panic!("{service} was not restarted after {signal}"));
-    let events = run.supervisor_events().expect("events");
-    let detected = events
-        .iter()
-        .find(|e| e.service == service && e.event == detected_event && e.monotonic_ns > injected)
-        .unwrap_or_else(|| panic!("supervisor did not report {detected_event} for {service}"));
+            .map(|e| e.monotonic_ns),
+        _ => run
+            .teensy_events()
+            .unwrap_or_default()
+            .iter()
+            .find(|e| e.monotonic_ns > injected && back_events.contains(&e.kind.as_str()))
+            .map(|e| e.monotonic_ns),
+    })
+    .unwrap_or_else(|| panic!("{service} did not come back after {label}"));
+    assert!(
+        wait_tracking(run, restart_ns, 5, Duration::from_secs(15)),
+        "no tracking after {service} came back from {label}"
+    );
     let teensy = run.teensy_events().expect("teensy");
     let last_before = teensy
         .iter()
@@ -138,25 +216,21 @@ fn inject(run: &RunSet, service: &'static str, signal: Signal) -> FaultOutcome {
         (Some(z), Some(n)) if service == "coilbus" && n < z => n,
         (Some(z), _) => z,
         (None, Some(n)) if service == "coilbus" => n,
-        _ => panic!("coils never reached zero after {signal} of {service}"),
+        _ => panic!("coils never reached zero after {label} of {service}"),
     };
     let resumed = teensy
         .iter()
         .find(|e| e.monotonic_ns > restart_ns && e.kind == "command" && e.max_abs_current_a > 0.0)
         .expect("resume");
     let safe_bound_ms = match service {
-        // Nothing writes to the Teensy any more: its own watchdog is the bound.
-        "coilbus" => deadlines::TEENSY_WATCHDOG.as_secs_f64() * 1e3,
+        // Nothing reaches the board's outputs any more: its own (hardware) watchdog is the bound.
+        "coilbus" | TEENSY_LINK => deadlines::TEENSY_WATCHDOG.as_secs_f64() * 1e3,
         _ => deadlines::COMMAND.as_secs_f64() * 1e3,
     };
     FaultOutcome {
         service,
-        signal: if signal == Signal::SIGKILL {
-            "SIGKILL"
-        } else {
-            "SIGSTOP"
-        },
-        detection_ms: ms(injected, detected.monotonic_ns),
+        signal: label,
+        detection_ms: ms(injected, detected_ns),
         // From the last frame the Teensy got before the fault (the deadline's start).
         safe_ms: ms(last_before.min(injected), safe_ns),
         resume_ms: ms(injected, resumed.monotonic_ns),
@@ -189,24 +263,27 @@ fn assert_invariants(run: &RunSet, teensy: &[TeensyEvent]) {
 
 fn quantiles(values: &mut [f64]) -> (f64, f64) {
     values.sort_by(|a, b| a.total_cmp(b));
-    (
-        values[values.len() / 2],
-        *values.last().unwrap_or(&f64::NAN),
-    )
+    let n = values.len();
+    let median = if n % 2 == 0 {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    } else {
+        values[n / 2]
+    };
+    (median, *values.last().unwrap_or(&f64::NAN))
 }
 
 #[test]
 fn every_service_killed_and_hung_in_turn() {
-    let mut run = RunSet::start("faultmatrix", &circle_scenario(40.0, 5)).expect("start");
+    let mut run = RunSet::start("faultmatrix", &circle_scenario(150.0, 5)).expect("start");
     assert!(
         wait_tracking(&run, 0, 100, Duration::from_secs(60)),
         "loop never started"
     );
     let mut rng = FaultRng::new(0x5eed);
-    let mut plan: Vec<(&'static str, Signal)> = Vec::new();
+    let mut plan: Vec<Fault> = vec![Fault::LinkUnplug, Fault::LinkHang];
     for service in ["vision", "flow", "control", "coilbus"] {
-        plan.push((service, Signal::SIGKILL));
-        plan.push((service, Signal::SIGSTOP));
+        plan.push(Fault::Process(service, Signal::SIGKILL));
+        plan.push(Fault::Process(service, Signal::SIGSTOP));
     }
     // Seeded shuffle and seeded pauses between faults.
     for i in (1..plan.len()).rev() {
@@ -214,9 +291,9 @@ fn every_service_killed_and_hung_in_turn() {
         plan.swap(i, j.min(i));
     }
     let mut outcomes = Vec::new();
-    for (service, signal) in plan {
+    for fault in plan {
         std::thread::sleep(Duration::from_millis(300 + (rng.next() * 700.0) as u64));
-        let outcome = inject(&run, service, signal);
+        let outcome = inject(&run, fault);
         println!("{outcome:?}");
         outcomes.push(outcome);
     }
@@ -275,19 +352,27 @@ fn soak_random_kills() {
         "loop never started"
     );
     let mut rng = FaultRng::new(kills as u64 + 17);
-    let services = ["vision", "flow", "control", "coilbus"];
+    let faults = [
+        Fault::Process("vision", Signal::SIGKILL),
+        Fault::Process("flow", Signal::SIGKILL),
+        Fault::Process("control", Signal::SIGKILL),
+        Fault::Process("coilbus", Signal::SIGKILL),
+        Fault::LinkUnplug,
+    ];
     let start = Instant::now();
     for k in 0..kills {
-        let service = services[(rng.next() * services.len() as f64) as usize % services.len()];
+        let fault = faults[(rng.next() * faults.len() as f64) as usize % faults.len()];
         let after = monotonic_ns();
-        inject(&run, service, Signal::SIGKILL);
+        inject(&run, fault);
         assert!(
             wait_tracking(&run, after, 3, Duration::from_secs(20)),
-            "no recovery after kill {k} of {service}"
+            "no recovery after fault {k} ({} of {})",
+            fault.label(),
+            fault.service()
         );
     }
     println!(
-        "soak: {kills} kills survived in {:.1} s",
+        "soak: {kills} faults survived in {:.1} s",
         start.elapsed().as_secs_f64()
     );
     // The supervisor must still be alive and stop cleanly on request.

@@ -194,6 +194,19 @@ impl RunSet {
             .collect())
     }
 
+    /// coilbus's serial-link log (`open` / `lost`), as (monotonic_ns, event).
+    pub fn link_events(&self) -> anyhow::Result<Vec<(u64, String)>> {
+        let text = std::fs::read_to_string(self.run_dir.join(millinav_coilbus::LINK_EVENTS_CSV))?;
+        Ok(text
+            .lines()
+            .skip(1)
+            .filter_map(|line| {
+                let mut f = line.splitn(3, ',');
+                Some((f.next()?.parse().ok()?, f.next()?.to_owned()))
+            })
+            .collect())
+    }
+
     pub fn supervisor_events(&self) -> anyhow::Result<Vec<SupervisorEvent>> {
         let text = std::fs::read_to_string(self.run_dir.join("supervisor_events.csv"))?;
         Ok(text

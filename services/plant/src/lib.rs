@@ -2,6 +2,7 @@
 //! publishes frames and `PlantTruth`, and exposes an emulated Teensy on a pty pair that coilbus
 //! drives exactly like the real board. In lockstep mode it is the run's clock.
 
+pub mod fault_signals;
 pub mod model;
 pub mod render;
 pub mod teensy;
@@ -25,7 +26,7 @@ use shm_schemas::{
 
 use crate::model::{PlantModel, PlantPhysicsConfig, PlantState};
 use crate::render::{Camera, CameraConfig, CapsulePose};
-use crate::teensy::EmulatedTeensy;
+use crate::teensy::{EmulatedTeensy, LinkFault};
 
 /// `[plant]` section of a scenario.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -41,6 +42,27 @@ pub struct PlantConfig {
     pub physics: PlantPhysicsConfig,
     /// Blur, lighting drift, latency (`[plant.camera]`).
     pub camera: CameraConfig,
+    /// What SIGUSR1 / SIGUSR2 do to the emulated Teensy link (`[plant.link_faults]`).
+    pub link_faults: LinkFaultConfig,
+}
+
+/// Durations of the link faults the plant injects on a signal: SIGUSR1 pulls the USB cable for
+/// `unplug_ms`, SIGUSR2 stalls the board's firmware for `hang_ms` (longer than the Teensy
+/// watchdog, so the hardware watchdog resets the board).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LinkFaultConfig {
+    pub unplug_ms: u64,
+    pub hang_ms: u64,
+}
+
+impl Default for LinkFaultConfig {
+    fn default() -> Self {
+        Self {
+            unplug_ms: 500,
+            hang_ms: 800,
+        }
+    }
 }
 
 impl Default for PlantConfig {
@@ -52,6 +74,7 @@ impl Default for PlantConfig {
             log_every_frames: 1,
             physics: PlantPhysicsConfig::default(),
             camera: CameraConfig::default(),
+            link_faults: LinkFaultConfig::default(),
         }
     }
 }
@@ -186,6 +209,10 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         deadlines::TEENSY_WATCHDOG,
     )
     .context("starting the emulated Teensy")?;
+    // iceoryx2 takes over every catchable signal the first time it checks for termination;
+    // let it do so first, then claim SIGUSR1/SIGUSR2 for link faults.
+    let _ = rt.shutdown_requested();
+    fault_signals::install().context("installing the link-fault signal handlers")?;
     let frames = FrameOutbox::new(&rt.node)?;
     let truth_out = Outbox::<PlantTruth>::new(&rt.node, services::PLANT_TRUTH)?;
     let mut truth_csv = TruthCsv::create(&rt.env.run_dir.join(TRUTH_CSV))?;
@@ -284,6 +311,15 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             );
             break;
         }
+        match fault_signals::take() {
+            Some(fault_signals::Requested::Unplug) => teensy.inject(LinkFault::Unplug(
+                Duration::from_millis(config.link_faults.unplug_ms),
+            )),
+            Some(fault_signals::Requested::Hang) => teensy.inject(LinkFault::Hang(
+                Duration::from_millis(config.link_faults.hang_ms),
+            )),
+            None => {}
+        }
         let commanded: [f64; COIL_COUNT] = match scenario.run.mode {
             ClockMode::Lockstep => {
                 let (outputs, in_time) = teensy.wait_for_frame(seq, deadlines::LOCKSTEP_COMMAND);
@@ -328,25 +364,6 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Opens a CSV log for appending (a restarted plant continues the same file), writing the
-/// header only when the file is new.
-fn open_csv_append(
-    path: &std::path::Path,
-    header: &str,
-) -> anyhow::Result<std::io::BufWriter<std::fs::File>> {
-    use std::io::Write;
-    let fresh = !path.exists();
-    let file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(path)?;
-    let mut out = std::io::BufWriter::new(file);
-    if fresh {
-        writeln!(out, "{header}")?;
-    }
-    Ok(out)
-}
-
 /// File name of the ground-truth trace in a run directory.
 pub const TRUTH_CSV: &str = "truth.csv";
 
@@ -361,7 +378,7 @@ impl TruthCsv {
 
     pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
         // Append: a restarted plant continues the same trace.
-        let out = open_csv_append(path, Self::HEADER)?;
+        let out = millinav_kit::open_csv_append(path, Self::HEADER)?;
         Ok(Self { out })
     }
 
@@ -412,7 +429,7 @@ impl ContactLog {
         "frame_seq,sim_time_s,event,x_m,y_m,contact_events,contact_time_s";
 
     pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
-        let out = open_csv_append(path, Self::HEADER)?;
+        let out = millinav_kit::open_csv_append(path, Self::HEADER)?;
         Ok(Self {
             out,
             touching: false,

@@ -3,6 +3,11 @@
 //! telemetry, and zeroes its outputs on its own watchdog when frames stop coming. Every frame it
 //! receives is appended to `teensy_events.csv` in the run directory (wall clock), so tests can
 //! observe exactly when currents reached zero.
+//!
+//! It can also be told to suffer a link fault (`LinkFault`): a pulled USB cable (the device node
+//! vanishes, the unpowered board drives nothing) or a firmware stall (nothing read or sent; the
+//! board's hardware watchdog resets it, zeroing its outputs). The plant maps SIGUSR1/SIGUSR2 to
+//! these so fault-injection tests can hit the link like any other service.
 
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
@@ -20,6 +25,20 @@ use shm_schemas::{COIL_COUNT, NO_FRAME};
 /// The board's own per-channel limit (the Roboclaw channels), independent of coilbus.
 const HARDWARE_LIMIT_A: f64 = 30.0;
 const TELEMETRY_PERIOD: Duration = Duration::from_millis(50);
+/// How often the board retries creating its device node if the OS refuses (replug).
+const REPLUG_RETRY: Duration = Duration::from_millis(100);
+
+/// A fault of the serial link, injected on purpose.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkFault {
+    /// USB cable pulled for this long: the device node disappears and the unpowered board
+    /// drives zero current; then it is plugged back in under the same link path.
+    Unplug(Duration),
+    /// Firmware stalls for this long: nothing is read, applied or sent. After the watchdog
+    /// period the hardware watchdog resets the board (outputs zero); it boots with an empty
+    /// receive buffer when the stall ends.
+    Hang(Duration),
+}
 
 /// What the emulated board currently drives, shared with the plant loop.
 #[derive(Debug, Clone)]
@@ -38,6 +57,7 @@ struct Shared {
     outputs: Mutex<TeensyOutputs>,
     command_arrived: Condvar,
     stop: AtomicBool,
+    fault: Mutex<Option<LinkFault>>,
 }
 
 pub struct EmulatedTeensy {
@@ -49,18 +69,7 @@ pub struct EmulatedTeensy {
 impl EmulatedTeensy {
     /// Creates the pty pair, links its slave to `link_path`, and starts serving.
     pub fn start(link_path: &Path, events_path: &Path, watchdog: Duration) -> anyhow::Result<Self> {
-        let (master, slave) = TTYPort::pair()?;
-        let slave_name = slave
-            .name()
-            .ok_or_else(|| anyhow::anyhow!("pty slave has no device path"))?;
-        // Keep our fds out of children and let coilbus reopen the slave after a restart.
-        let mut master = master.try_clone_native()?;
-        master.set_timeout(Duration::from_millis(5))?;
-        let mut slave = slave.try_clone_native()?;
-        slave.set_exclusive(false)?;
-        let _ = std::fs::remove_file(link_path);
-        std::os::unix::fs::symlink(&slave_name, link_path)?;
-        tracing::info!(pty = %slave_name, link = %link_path.display(), "emulated Teensy ready");
+        let mut pty = Pty::plug_in(link_path)?;
         let mut events = std::fs::File::create(events_path)?;
         writeln!(
             events,
@@ -78,20 +87,48 @@ impl EmulatedTeensy {
             }),
             command_arrived: Condvar::new(),
             stop: AtomicBool::new(false),
+            fault: Mutex::new(None),
         });
         let thread_shared = shared.clone();
+        let thread_link = link_path.to_owned();
         let thread = std::thread::Builder::new()
             .name("teensy".into())
-            .spawn(move || {
-                // The slave handle stays open so the pty lives while coilbus restarts.
-                let _slave = slave;
-                serve(&mut master, &thread_shared, &mut events, watchdog);
+            .spawn(move || loop {
+                let unplugged_for =
+                    match serve(&mut pty.master, &thread_shared, &mut events, watchdog) {
+                        Served::Stopped => return,
+                        Served::Unplugged(duration) => duration,
+                    };
+                drop(pty);
+                let _ = std::fs::remove_file(&thread_link);
+                power_off(&thread_shared, &mut events, "unplugged");
+                tracing::warn!("emulated Teensy unplugged for {unplugged_for:?}");
+                if !sleep_unless_stopped(&thread_shared, unplugged_for) {
+                    return;
+                }
+                pty = loop {
+                    match Pty::plug_in(&thread_link) {
+                        Ok(pty) => break pty,
+                        Err(e) => {
+                            tracing::error!("emulated Teensy cannot re-create its pty: {e:#}");
+                            if !sleep_unless_stopped(&thread_shared, REPLUG_RETRY) {
+                                return;
+                            }
+                        }
+                    }
+                };
+                log_event(&mut events, NO_FRAME, 0, &[0.0], "replugged");
             })?;
         Ok(Self {
             shared,
             thread: Some(thread),
             link_path: link_path.to_owned(),
         })
+    }
+
+    /// Makes the board suffer `fault` (it acts on it within a few milliseconds).
+    pub fn inject(&self, fault: LinkFault) {
+        *self.shared.fault.lock().unwrap_or_else(|p| p.into_inner()) = Some(fault);
     }
 
     pub fn outputs(&self) -> TeensyOutputs {
@@ -137,6 +174,92 @@ impl Drop for EmulatedTeensy {
     }
 }
 
+/// The board's end of a pty pair, its slave linked where coilbus looks for the port.
+struct Pty {
+    master: TTYPort,
+    /// Kept open so the pty lives while coilbus restarts and reopens the slave.
+    _slave: TTYPort,
+}
+
+impl Pty {
+    fn plug_in(link_path: &Path) -> anyhow::Result<Self> {
+        let (master, slave) = TTYPort::pair()?;
+        let slave_name = slave
+            .name()
+            .ok_or_else(|| anyhow::anyhow!("pty slave has no device path"))?;
+        // Keep our fds out of children and let coilbus reopen the slave after a restart.
+        let mut master = master.try_clone_native()?;
+        master.set_timeout(Duration::from_millis(5))?;
+        let mut slave = slave.try_clone_native()?;
+        slave.set_exclusive(false)?;
+        // Replace the link atomically: coilbus never sees a half-made one.
+        let staging = link_path.with_extension("plugging");
+        let _ = std::fs::remove_file(&staging);
+        std::os::unix::fs::symlink(&slave_name, &staging)?;
+        std::fs::rename(&staging, link_path)?;
+        tracing::info!(pty = %slave_name, link = %link_path.display(), "emulated Teensy ready");
+        Ok(Self {
+            master,
+            _slave: slave,
+        })
+    }
+}
+
+/// Zeroes the outputs as a board without power (or in reset) does, and logs why.
+fn power_off(shared: &Shared, events: &mut std::fs::File, event: &str) {
+    {
+        let mut out = lock(shared);
+        out.currents_a = [0.0; COIL_COUNT];
+        out.watchdog_tripped = true;
+    }
+    log_event(events, NO_FRAME, 0, &[0.0], event);
+}
+
+/// Sleeps `duration` in short steps; false when the board was stopped meanwhile.
+fn sleep_unless_stopped(shared: &Shared, duration: Duration) -> bool {
+    let until = Instant::now() + duration;
+    while Instant::now() < until {
+        if shared.stop.load(Ordering::Relaxed) {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(5).min(until - Instant::now()));
+    }
+    !shared.stop.load(Ordering::Relaxed)
+}
+
+/// Firmware stall: nothing served for `duration`. A stall longer than `watchdog` trips the
+/// hardware watchdog, which resets the board (outputs zero, empty receive buffer). False when
+/// the board was stopped meanwhile.
+fn stall(
+    port: &mut TTYPort,
+    shared: &Shared,
+    events: &mut std::fs::File,
+    watchdog: Duration,
+    duration: Duration,
+) -> bool {
+    let started = Instant::now();
+    log_event(events, NO_FRAME, 0, &lock(shared).currents_a, "hang");
+    tracing::warn!("emulated Teensy firmware stalled for {duration:?}");
+    if duration <= watchdog {
+        return sleep_unless_stopped(shared, duration);
+    }
+    if !sleep_unless_stopped(shared, watchdog) {
+        return false;
+    }
+    power_off(shared, events, "hw_watchdog_reset");
+    if !sleep_unless_stopped(shared, duration.saturating_sub(started.elapsed())) {
+        return false;
+    }
+    let _ = port.clear(serialport::ClearBuffer::Input);
+    log_event(events, NO_FRAME, 0, &[0.0], "rebooted");
+    true
+}
+
+enum Served {
+    Stopped,
+    Unplugged(Duration),
+}
+
 fn lock(shared: &Shared) -> std::sync::MutexGuard<'_, TeensyOutputs> {
     shared.outputs.lock().unwrap_or_else(|p| p.into_inner())
 }
@@ -155,13 +278,36 @@ fn log_event(events: &mut std::fs::File, frame_seq: u64, flags: u8, currents: &[
     );
 }
 
-fn serve(port: &mut TTYPort, shared: &Shared, events: &mut std::fs::File, watchdog: Duration) {
+fn serve(
+    port: &mut TTYPort,
+    shared: &Shared,
+    events: &mut std::fs::File,
+    watchdog: Duration,
+) -> Served {
     let mut decoder = Decoder::new();
     let mut buf = [0u8; 1024];
     let mut last_rx: Option<Instant> = None;
     let mut last_telemetry = Instant::now();
     let mut tx_seq = 0u32;
     while !shared.stop.load(Ordering::Relaxed) {
+        let fault = shared
+            .fault
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take();
+        match fault {
+            Some(LinkFault::Unplug(duration)) => return Served::Unplugged(duration),
+            Some(LinkFault::Hang(duration)) => {
+                if !stall(port, shared, events, watchdog, duration) {
+                    return Served::Stopped;
+                }
+                // A reset board starts from scratch.
+                decoder = Decoder::new();
+                last_rx = None;
+                continue;
+            }
+            None => {}
+        }
         let packets = match port.read(&mut buf) {
             Ok(n) => decoder.push(&buf[..n]),
             // TimedOut: nothing waiting. BrokenPipe: no peer has the slave open right now.
@@ -247,4 +393,5 @@ fn serve(port: &mut TTYPort, shared: &Shared, events: &mut std::fs::File, watchd
             let _ = port.write_all(&telemetry);
         }
     }
+    Served::Stopped
 }
