@@ -27,6 +27,7 @@ fn write_flow_map(dir: &Path) -> PathBuf {
         origin_m: origin,
         spacing_m: h,
         velocity_mps,
+        chamber_peak_mps: None,
     };
     std::fs::create_dir_all(dir).expect("map dir");
     let path = dir.join("swirl.flow.csv");

@@ -30,6 +30,10 @@ pub struct FlowMap {
     pub spacing_m: f64,
     /// Row-major, `j * nx + i` is node (x0 + i·h, y0 + j·h).
     pub velocity_mps: Vec<Vector2<f64>>,
+    /// Peak speed in the heart chamber (the optional `chamber_peak_mps` header key): the
+    /// condition's "peak velocity" in the paper's sense. `peak_speed()` is usually set by the
+    /// narrow outlet funnel instead, 1.3–1.6x higher.
+    pub chamber_peak_mps: Option<f64>,
 }
 
 impl FlowMap {
@@ -41,6 +45,7 @@ impl FlowMap {
             origin_m: Vector2::new(-0.05, -0.05),
             spacing_m: 0.1,
             velocity_mps: vec![Vector2::zeros(); 4],
+            chamber_peak_mps: None,
         }
     }
 
@@ -76,10 +81,19 @@ impl FlowMap {
             .fold(0.0, f64::max)
     }
 
+    /// The speed that characterises the condition: the chamber peak when the map says it,
+    /// else the peak over the whole grid.
+    pub fn condition_peak_speed(&self) -> f64 {
+        self.chamber_peak_mps
+            .filter(|v| v.is_finite() && *v >= 0.0)
+            .unwrap_or_else(|| self.peak_speed())
+    }
+
     /// Multiplies every velocity by `factor` (e.g. to scale a map to a flow condition).
     pub fn scaled(&self, factor: f64) -> Self {
         let mut out = self.clone();
         out.velocity_mps.iter_mut().for_each(|v| *v *= factor);
+        out.chamber_peak_mps = out.chamber_peak_mps.map(|v| v * factor.abs());
         out
     }
 
@@ -201,6 +215,15 @@ impl FlowMap {
             origin_m: Vector2::new(get("x0_mm")? * 1e-3, get("y0_mm")? * 1e-3),
             spacing_m: spacing_mm * 1e-3,
             velocity_mps: rows,
+            chamber_peak_mps: match header.get("chamber_peak_mps") {
+                None => None,
+                Some(v) => Some(
+                    v.parse::<f64>()
+                        .ok()
+                        .filter(|v| v.is_finite() && *v >= 0.0)
+                        .ok_or("header key chamber_peak_mps is not a non-negative number")?,
+                ),
+            },
         })
     }
 }
@@ -223,6 +246,7 @@ mod tests {
             origin_m: Vector2::new(-0.002, 0.001),
             spacing_m: 0.001,
             velocity_mps: v,
+            chamber_peak_mps: None,
         }
     }
 

@@ -282,7 +282,7 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TruthRow>> {
     let mut rows = Vec::new();
     for line in text.lines().skip(1) {
         let f: Vec<&str> = line.split(',').collect();
-        if f.len() != 12 {
+        if f.len() != 13 {
             continue;
         }
         rows.push(TruthRow {

@@ -145,6 +145,12 @@ pub struct SmcGains {
     pub flow_eta_s: f64,
     pub flow_phi_m: f64,
     pub schedule_ref_speed_mps: f64,
+    /// With `auto_schedule`: the boundary layer is widened so that the switching term's slope
+    /// γ·K4/φ (a derivative gain on the estimated velocity) stays at or below this fraction of
+    /// m̂/Δt, the nominal mass over the measured sample time. Above ≈ m̂/Δt the sampled loop
+    /// rings: with the paper's K4/φ at our 100 Hz the slope is ≈ 9 m̂/Δt and SMC chatters at the
+    /// current limit.
+    pub sampled_gain_fraction: f64,
 }
 
 impl Default for SmcGains {
@@ -166,6 +172,7 @@ impl Default for SmcGains {
             flow_eta_s: 12.0e-2,
             flow_phi_m: 18.0e-3,
             schedule_ref_speed_mps: 0.07,
+            sampled_gain_fraction: 0.5,
         }
     }
 }
@@ -200,10 +207,15 @@ impl SmcDob {
         let b = (input.flow_mps.norm() / g.schedule_ref_speed_mps.max(1e-6)).clamp(0.0, 1.0);
         let lerp = |a: f64, c: f64| a + (c - a) * b;
         let zone = if input.high_disturbance { 1.0 } else { 0.0 };
+        let k4_n = lerp(g.k4_n, g.flow_k4_n);
+        let phi_m = lerp(g.phi_m, g.flow_phi_m) * (1.0 + 0.5 * zone);
+        // Sample time as measured, bounded so one odd gap cannot make φ absurd.
+        let dt = input.dt_s.clamp(1e-3, 0.2);
+        let sampled_limit = g.sampled_gain_fraction.max(1e-3) * self.model.mass_kg / dt;
         SmcGains {
-            k4_n: lerp(g.k4_n, g.flow_k4_n),
+            k4_n,
             eta_s: lerp(g.eta_s, g.flow_eta_s) * (1.0 + 0.75 * zone),
-            phi_m: lerp(g.phi_m, g.flow_phi_m) * (1.0 + 0.5 * zone),
+            phi_m: phi_m.max(g.gamma * k4_n / sampled_limit),
             ..g.clone()
         }
     }
@@ -220,14 +232,16 @@ impl Controller for SmcDob {
         match (self.gains.use_dob, self.gains.auto_schedule) {
             (true, false) => "smc-dob",
             (true, true) => "smc-dob-auto",
-            (false, _) => "smc",
+            (false, false) => "smc",
+            (false, true) => "smc-auto",
         }
     }
     fn id(&self) -> u32 {
         match (self.gains.use_dob, self.gains.auto_schedule) {
             (true, false) => 2,
             (true, true) => 5,
-            (false, _) => 3,
+            (false, false) => 3,
+            (false, true) => 6,
         }
     }
     fn update(&mut self, input: &ControlInput) -> (Vector2<f64>, ControlTerms) {
@@ -290,6 +304,8 @@ pub enum ControllerKind {
     /// SMC-DOB with automatic gain scheduling (beyond the paper; pair it with
     /// `constrained_allocation = true`).
     SmcDobAuto,
+    /// `smc-dob-auto` without the observer: the DOB ablation of the scheduled controller.
+    SmcAuto,
 }
 
 impl ControllerKind {
@@ -317,9 +333,9 @@ impl ControllerKind {
                 model,
             )),
             Self::Mpc => Box::new(crate::mpc::Mpc::new(mpc.clone(), model)),
-            Self::SmcDobAuto => Box::new(SmcDob::new(
+            Self::SmcDobAuto | Self::SmcAuto => Box::new(SmcDob::new(
                 SmcGains {
-                    use_dob: true,
+                    use_dob: self == Self::SmcDobAuto,
                     auto_schedule: true,
                     ..smc.clone()
                 },

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use fieldmaps::allocation::{
-    actuation_matrix, allocate_constrained, allocate_limited, ConstrainedSettings,
+    actuation_matrix, allocate_constrained, allocate_limited, ConstrainedSettings, ALL_COILS,
     DEFAULT_PLANAR_COILS,
 };
 use fieldmaps::coils::CoilSystem;
@@ -61,6 +61,14 @@ pub struct ControlConfig {
     /// Allocate with the constrained QP (per-coil and total limits, best effort when the
     /// command is infeasible) instead of the paper's pseudo-inverse followed by scaling.
     pub constrained_allocation: bool,
+    /// Weight of the two field rows against the force rows in the constrained allocation's
+    /// best-effort fit. When the command is out of reach, the orientation field (the robot's
+    /// heading, hence the direction of every force) is kept and force is given up first;
+    /// with equal weights the fit trades the 1 mT field for force and the robot tumbles.
+    pub field_row_weight: f64,
+    /// Allocate over all 12 coils instead of the paper's 8 (small + large of each unit): the
+    /// idle mid coils add force authority where the flow pushes hardest.
+    pub use_all_coils: bool,
 }
 
 impl Default for ControlConfig {
@@ -78,6 +86,8 @@ impl Default for ControlConfig {
             velocity_filter_ms: 30.0,
             limits: CoilLimits::default(),
             constrained_allocation: false,
+            field_row_weight: 1e4,
+            use_all_coils: false,
         }
     }
 }
@@ -182,18 +192,27 @@ impl ControlLoop {
         let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
         let p3 = Vector3::new(position.x, position.y, 0.0);
         let omega0 = self.config.omega0_n_per_t;
-        let a = actuation_matrix(&self.coils, &p3, &moment, &DEFAULT_PLANAR_COILS, omega0);
+        let coil_ids: &[usize] = if self.config.use_all_coils {
+            &ALL_COILS
+        } else {
+            &DEFAULT_PLANAR_COILS
+        };
+        let a = actuation_matrix(&self.coils, &p3, &moment, coil_ids, omega0);
         let b = self.desired_field();
         let c = DVector::from_vec(vec![force.x, force.y, omega0 * b.x, omega0 * b.y]);
         let mut currents = [0.0; COIL_COUNT];
         let allocated = if self.config.constrained_allocation {
-            allocate_constrained(&a, &c, &self.config.limits, &ConstrainedSettings::default())
-                .map(|a| a.currents_a)
+            let w = self.config.field_row_weight;
+            let settings = ConstrainedSettings {
+                row_weights: Some(DVector::from_vec(vec![1.0, 1.0, w, w])),
+                ..ConstrainedSettings::default()
+            };
+            allocate_constrained(&a, &c, &self.config.limits, &settings).map(|a| a.currents_a)
         } else {
             allocate_limited(&a, &c, &self.config.limits).map(|a| a.currents_a)
         };
         if let Ok(allocated) = allocated {
-            for (k, &id) in DEFAULT_PLANAR_COILS.iter().enumerate() {
+            for (k, &id) in coil_ids.iter().enumerate() {
                 currents[id] = allocated[k];
             }
         }

@@ -374,7 +374,7 @@ pub struct TruthCsv {
 
 impl TruthCsv {
     pub const HEADER: &'static str =
-        "frame_seq,sim_time_s,x_m,y_m,vx_mps,vy_mps,heading_rad,flow_x_mps,flow_y_mps,wall_contact,max_abs_current_a,lockstep_misses";
+        "frame_seq,sim_time_s,x_m,y_m,vx_mps,vy_mps,heading_rad,flow_x_mps,flow_y_mps,wall_contact,max_abs_current_a,lockstep_misses,sum_sq_current_a2";
 
     pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
         // Append: a restarted plant continues the same trace.
@@ -388,9 +388,10 @@ impl TruthCsv {
             .applied_currents_a
             .iter()
             .fold(0.0f64, |m, c| m.max(c.abs()));
+        let sum_sq_current: f64 = t.applied_currents_a.iter().map(|c| c * c).sum();
         writeln!(
             self.out,
-            "{},{:.6},{:.9},{:.9},{:.9},{:.9},{:.6},{:.9},{:.9},{},{:.6},{}",
+            "{},{:.6},{:.9},{:.9},{:.9},{:.9},{:.6},{:.9},{:.9},{},{:.6},{},{:.6}",
             t.frame_seq,
             t.sim_time_ns as f64 * 1e-9,
             t.position_m[0],
@@ -402,7 +403,8 @@ impl TruthCsv {
             t.true_flow_mps[1],
             u8::from(t.wall_contact),
             max_current,
-            t.lockstep_misses
+            t.lockstep_misses,
+            sum_sq_current
         )?;
         Ok(())
     }

@@ -160,7 +160,7 @@ impl PlantModel {
         let disturbance = FlowDisturbance::new(
             &config.recirculation,
             &config.flow_noise,
-            steady_flow.peak_speed(),
+            steady_flow.condition_peak_speed(),
             seed,
         );
         Self {

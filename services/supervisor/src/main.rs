@@ -36,7 +36,8 @@ enum Commands {
         /// iceoryx2 file prefix of the set (give each concurrent run its own).
         #[arg(long, default_value = "millinav_")]
         iox_prefix: String,
-        /// iceoryx2 root directory of the set.
+        /// iceoryx2 root directory of the set. Keep it short: iceoryx2 creates Unix sockets
+        /// under it, and their paths (root + prefix + a hash) must fit in 108 bytes.
         #[arg(long, default_value = "/tmp/millinav/iceoryx2")]
         iox_root: PathBuf,
         /// Stop after this many wall-clock seconds even if the run has not finished.

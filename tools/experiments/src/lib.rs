@@ -86,6 +86,7 @@ pub fn paper_matrix(trials: u64, beyond: bool) -> Vec<Cell> {
     let mut controllers = vec!["pid", "mpc", "smc-dob", "smc"];
     if beyond {
         controllers.push("smc-dob-auto");
+        controllers.push("smc-auto");
     }
     let mut cells = Vec::new();
     for viscosity_cp in [20.0, 4.3] {
@@ -136,8 +137,24 @@ pub fn cell_scenario(base: &Scenario, cell: &Cell, root: &Path) -> anyhow::Resul
         .and_then(|v| v.as_table().cloned())
         .unwrap_or_default();
     control.insert("controller".into(), cell.controller.clone().into());
-    if cell.controller == "smc-dob-auto" {
-        control.insert("constrained_allocation".into(), true.into());
+    match cell.controller.as_str() {
+        "smc-dob-auto" | "smc-auto" => {
+            control.insert("constrained_allocation".into(), true.into());
+            control.insert("use_all_coils".into(), true.into());
+        }
+        // The paper ran its SMC with a second, fixed gain set whenever the fluid moved.
+        "smc-dob" | "smc" if cell.flow != FlowSetting::Static => {
+            let paper = millinav_control::controllers::SmcGains::default();
+            let mut smc = control
+                .get("smc")
+                .and_then(|v| v.as_table().cloned())
+                .unwrap_or_default();
+            smc.insert("k4_n".into(), paper.flow_k4_n.into());
+            smc.insert("eta_s".into(), paper.flow_eta_s.into());
+            smc.insert("phi_m".into(), paper.flow_phi_m.into());
+            control.insert("smc".into(), smc.into());
+        }
+        _ => {}
     }
     doc.insert("control".into(), control.into());
     Ok(toml::to_string(&doc)?)
@@ -225,11 +242,12 @@ pub fn process_run(
     let scenario_path = dir.join("scenario.toml");
     std::fs::write(&scenario_path, scenario_text)?;
     let run_dir = dir.join("run");
-    let prefix = format!(
-        "mx{}{}_",
-        std::process::id(),
-        name.replace(|c: char| !c.is_ascii_alphanumeric(), "")
-    );
+    // iceoryx2 keeps Unix-socket paths under its root, and those are limited to 108 bytes:
+    // keep the root and prefix short and unique per run instead of nesting them in `dir`.
+    static RUNS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let run_index = RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let prefix = format!("mx{}_{run_index}_", std::process::id());
+    let iox_root = std::env::temp_dir().join(format!("mx-{}-{run_index}", std::process::id()));
     let status = Command::new(bin_dir.join("millinav"))
         .arg("run")
         .arg(&scenario_path)
@@ -237,12 +255,13 @@ pub fn process_run(
         .arg(&run_dir)
         .args(["--viewer", "none", "--iox-prefix", &prefix])
         .arg("--iox-root")
-        .arg(dir.join("iceoryx2"))
+        .arg(&iox_root)
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(dir.join("supervisor.log"))?)
         .status()
         .context("running millinav")?;
+    let _ = std::fs::remove_dir_all(&iox_root);
     if !status.success() {
         bail!(
             "millinav run failed ({status}); see {}",
@@ -274,8 +293,11 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TraceRow>> {
             position_m: Vector2::new(f[2].parse()?, f[3].parse()?),
             wall_contact: f[9] == "1",
             max_abs_current_a: max_current,
-            // truth.csv keeps only the largest current; bound the sum by it.
-            sum_sq_current_a2: max_current * max_current * COIL_COUNT as f64,
+            // Older traces lack the Σ I² column: bound the sum by the largest current.
+            sum_sq_current_a2: match f.get(12) {
+                Some(v) => v.parse()?,
+                None => max_current * max_current * COIL_COUNT as f64,
+            },
         });
     }
     Ok(rows)

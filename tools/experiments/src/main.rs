@@ -41,6 +41,9 @@ struct Args {
     /// Only these controllers (comma separated), e.g. smc-dob,pid.
     #[arg(long, value_delimiter = ',')]
     controllers: Vec<String>,
+    /// Only cells whose name contains one of these (comma separated), e.g. 20cp_q180,4.3cp_static.
+    #[arg(long, value_delimiter = ',')]
+    only: Vec<String>,
     /// Worker threads (fast mode).
     #[arg(long, default_value_t = 2)]
     threads: usize,
@@ -57,6 +60,9 @@ fn main() -> anyhow::Result<()> {
     let mut cells = paper_matrix(args.trials.max(1), args.beyond);
     if !args.controllers.is_empty() {
         cells.retain(|c| args.controllers.contains(&c.controller));
+    }
+    if !args.only.is_empty() {
+        cells.retain(|c| args.only.iter().any(|o| c.name().contains(o.as_str())));
     }
     std::fs::create_dir_all(&args.out)?;
     let bin_dir = std::env::current_exe()?
@@ -136,8 +142,37 @@ fn main() -> anyhow::Result<()> {
         start.elapsed().as_secs_f64()
     );
     if report::register_font() {
-        report::rmse_bars(&outcomes, &args.out.join("rmse_bars.png"))
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        use report::BarMetric;
+        let bars: [(BarMetric, &[&str], &str, &str); 4] = [
+            (
+                BarMetric::Rmse,
+                &[],
+                "RMSE by condition and controller (mean of trials)",
+                "rmse_bars.png",
+            ),
+            (
+                BarMetric::P95,
+                &[],
+                "P95 error by condition and controller (mean of trials)",
+                "p95_bars.png",
+            ),
+            (
+                BarMetric::Max,
+                &[],
+                "Max error by condition and controller (mean of trials)",
+                "max_bars.png",
+            ),
+            (
+                BarMetric::Rmse,
+                &["smc-dob", "smc", "smc-dob-auto", "smc-auto"],
+                "DOB ablation: RMSE with and without the observer",
+                "dob_ablation.png",
+            ),
+        ];
+        for (metric, only, title, file) in bars {
+            report::metric_bars(&outcomes, metric, only, title, &args.out.join(file))
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+        }
         let traces = traces
             .into_inner()
             .map_err(|_| anyhow::anyhow!("poisoned"))?;

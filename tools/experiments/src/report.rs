@@ -10,6 +10,7 @@ use plotters::prelude::*;
 use crate::{Cell, FlowSetting, Metrics, TraceRow};
 
 /// One finished run.
+#[derive(Debug, Clone)]
 pub struct Outcome {
     pub cell: Cell,
     pub metrics: Metrics,
@@ -134,13 +135,61 @@ pub fn register_font() -> bool {
     false
 }
 
-const COLORS: [RGBColor; 5] = [RED, BLUE, GREEN, MAGENTA, RGBColor(255, 140, 0)];
+/// One colour per controller, the same in every figure.
+fn color_of(controller: &str) -> RGBColor {
+    match controller {
+        "pid" => BLUE,
+        "mpc" => RED,
+        "smc" => GREEN,
+        "smc-dob" => MAGENTA,
+        "smc-dob-auto" => RGBColor(255, 140, 0),
+        "smc-auto" => RGBColor(0, 150, 150),
+        _ => BLACK,
+    }
+}
 
 type Res = Result<(), Box<dyn std::error::Error>>;
 
-/// RMSE bars per condition and controller.
-pub fn rmse_bars(outcomes: &[Outcome], path: &Path) -> Res {
-    let groups = groups(outcomes);
+/// Which number of a run a bar chart shows.
+#[derive(Debug, Clone, Copy)]
+pub enum BarMetric {
+    Rmse,
+    P95,
+    Max,
+}
+
+impl BarMetric {
+    fn of(self, m: &crate::Metrics) -> f64 {
+        match self {
+            Self::Rmse => m.rmse_mm,
+            Self::P95 => m.p95_mm,
+            Self::Max => m.max_mm,
+        }
+    }
+    fn label(self) -> &'static str {
+        match self {
+            Self::Rmse => "RMSE",
+            Self::P95 => "P95 error",
+            Self::Max => "max error",
+        }
+    }
+}
+
+/// Bars of one metric per condition and controller (mean of trials), for the controllers in
+/// `only` (all when empty).
+pub fn metric_bars(
+    outcomes: &[Outcome],
+    metric: BarMetric,
+    only: &[&str],
+    title: &str,
+    path: &Path,
+) -> Res {
+    let kept: Vec<Outcome> = outcomes
+        .iter()
+        .filter(|o| only.is_empty() || only.contains(&o.cell.controller.as_str()))
+        .cloned()
+        .collect();
+    let groups = groups(&kept);
     let conditions: Vec<(i64, FlowSetting)> = {
         let mut c: Vec<_> = groups.keys().map(|(v, f, _)| (*v, *f)).collect();
         c.dedup();
@@ -154,24 +203,21 @@ pub fn rmse_bars(outcomes: &[Outcome], path: &Path) -> Res {
     };
     let max = groups
         .values()
-        .flat_map(|l| l.iter().map(|o| o.metrics.rmse_mm))
+        .flat_map(|l| l.iter().map(|o| metric.of(&o.metrics)))
         .fold(1.0f64, f64::max)
         .min(20.0);
     let root = BitMapBackend::new(path, (1200, 600)).into_drawing_area();
     root.fill(&WHITE)?;
     let n = conditions.len() as f64;
     let mut chart = ChartBuilder::on(&root)
-        .caption(
-            "RMSE by condition and controller (mean of trials)",
-            ("sans-serif", 22),
-        )
+        .caption(title, ("sans-serif", 22))
         .margin(15)
         .x_label_area_size(40)
         .y_label_area_size(60)
         .build_cartesian_2d(0.0..n, 0.0..max * 1.1)?;
     chart
         .configure_mesh()
-        .y_desc("RMSE (mm)")
+        .y_desc(format!("{} (mm)", metric.label()))
         .x_labels(conditions.len())
         .x_label_formatter(&|x| {
             conditions
@@ -182,14 +228,18 @@ pub fn rmse_bars(outcomes: &[Outcome], path: &Path) -> Res {
         .draw()?;
     let width = 0.8 / controllers.len() as f64;
     for (k, controller) in controllers.iter().enumerate() {
-        let color = COLORS[k % COLORS.len()];
+        let color = color_of(controller);
         let bars: Vec<Rectangle<(f64, f64)>> = conditions
             .iter()
             .enumerate()
             .filter_map(|(i, (v, f))| {
                 let list = groups.get(&(*v, *f, controller.clone()))?;
-                let (mean, _) =
-                    mean_sd(&list.iter().map(|o| o.metrics.rmse_mm).collect::<Vec<_>>());
+                let (mean, _) = mean_sd(
+                    &list
+                        .iter()
+                        .map(|o| metric.of(&o.metrics))
+                        .collect::<Vec<_>>(),
+                );
                 let x0 = i as f64 + 0.1 + k as f64 * width;
                 Some(Rectangle::new(
                     [(x0, 0.0), (x0 + width * 0.9, mean.min(max * 1.1))],
@@ -240,6 +290,28 @@ pub fn traces_figure(
         .x_desc("x (mm)")
         .y_desc("y (mm)")
         .draw()?;
+    // The phantom's canal underneath, as the camera sees it from the top.
+    let phantom = fieldmaps::phantom::Phantom::default_heart();
+    let cell_mm = 0.5;
+    let canal: Vec<Rectangle<(f64, f64)>> = (0..((x1 - x0 + 2.0 * pad) / cell_mm) as usize)
+        .flat_map(|i| {
+            (0..((y1 - y0 + 2.0 * pad) / cell_mm) as usize)
+                .map(move |j| (x0 - pad + i as f64 * cell_mm, y0 - pad + j as f64 * cell_mm))
+        })
+        .filter(|&(x, y)| {
+            phantom.contains(&nalgebra::Vector2::new(
+                (x + 0.5 * cell_mm) * 1e-3,
+                (y + 0.5 * cell_mm) * 1e-3,
+            ))
+        })
+        .map(|(x, y)| {
+            Rectangle::new(
+                [(x, y), (x + cell_mm, y + cell_mm)],
+                RGBColor(225, 215, 200).filled(),
+            )
+        })
+        .collect();
+    plane.draw_series(canal)?;
     plane
         .draw_series(LineSeries::new(
             reference.waypoints().iter().map(|p| (p.x * 1e3, p.y * 1e3)),
@@ -252,8 +324,8 @@ pub fn traces_figure(
         .flat_map(|(_, t)| t.last().map(|r| r.time_s))
         .fold(1.0f64, f64::max);
     let mut e_max = 1.0f64;
-    for (k, (name, trace)) in traces.iter().enumerate() {
-        let color = COLORS[k % COLORS.len()];
+    for (name, trace) in traces {
+        let color = color_of(name);
         plane
             .draw_series(LineSeries::new(
                 trace
@@ -283,8 +355,8 @@ pub fn traces_figure(
         .x_desc("time (s)")
         .y_desc("error (mm)")
         .draw()?;
-    for (k, (name, trace)) in traces.iter().enumerate() {
-        let color = COLORS[k % COLORS.len()];
+    for (name, trace) in traces {
+        let color = color_of(name);
         errors
             .draw_series(LineSeries::new(
                 trace.iter().map(|r| {

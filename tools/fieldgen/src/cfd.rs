@@ -638,6 +638,7 @@ pub fn solve(
         origin_m: origin,
         spacing_m: sp,
         velocity_mps: velocity,
+        chamber_peak_mps: None,
     };
 
     let tube_area = std::f64::consts::PI * 0.25 * fieldmaps::phantom::INLET_DIAMETER_M.powi(2);

@@ -528,6 +528,7 @@ pub fn resample(
             origin_m: grid.origin_m,
             spacing_m: grid.spacing_m,
             velocity_mps: velocity,
+            chamber_peak_mps: None,
         },
         stats,
     ))

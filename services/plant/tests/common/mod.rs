@@ -34,6 +34,7 @@ pub fn swirl_map() -> FlowMap {
         origin_m: origin,
         spacing_m: h,
         velocity_mps: velocity,
+        chamber_peak_mps: None,
     }
 }
 
