@@ -264,7 +264,7 @@ fn assert_invariants(run: &RunSet, teensy: &[TeensyEvent]) {
 fn quantiles(values: &mut [f64]) -> (f64, f64) {
     values.sort_by(|a, b| a.total_cmp(b));
     let n = values.len();
-    let median = if n % 2 == 0 {
+    let median = if n.is_multiple_of(2) {
         0.5 * (values[n / 2 - 1] + values[n / 2])
     } else {
         values[n / 2]

@@ -202,6 +202,31 @@ impl FrameOutbox {
         Ok(())
     }
 
+    /// Publishes a frame written in place into shared memory (zero-copy): `fill` gets the
+    /// loaned payload of `len` bytes and writes what it needs to. Bytes it leaves alone hold
+    /// whatever an earlier frame left in that chunk (zeros in a fresh segment), so a camera
+    /// driver or renderer that rewrites every pixel, or only what changed, pays no copy.
+    pub fn send_in_place(
+        &self,
+        header: FrameHeader,
+        len: usize,
+        fill: impl FnOnce(&mut [u8]),
+    ) -> Result<(), KitError> {
+        let mut sample = self
+            .publisher
+            .loan_slice_uninit(len)
+            .map_err(iox("loan frame"))?;
+        *sample.user_header_mut() = header;
+        // SAFETY: the payload lies in this service's shared-memory data segment, which the OS
+        // maps zero-filled and which only ever holds u8 frames; u8 has no invalid bit pattern,
+        // so every byte of the chunk is an initialised u8 (stale pixels, not undefined ones).
+        let mut sample = unsafe { sample.assume_init() };
+        fill(sample.payload_mut());
+        sample.send().map_err(iox("send frame"))?;
+        self.notifier.notify().map_err(iox("notify frame"))?;
+        Ok(())
+    }
+
     pub fn update_connections(&self) {
         let _ = self.publisher.update_connections();
     }

@@ -62,8 +62,13 @@ impl Default for VisionConfig {
     }
 }
 
-/// The committed model, relative to the workspace root.
-pub const DEFAULT_MODEL: &str = "tools/unet/model/unet_roi96.onnx";
+/// The committed model the service runs, relative to the workspace root: `FLOAT_MODEL`
+/// quantized to int8 (tools/unet/quantize.py; keypoint head kept in float), 2x faster on the CPU
+/// with the same test-set accuracy.
+pub const DEFAULT_MODEL: &str = "tools/unet/model/unet_roi96_int8.onnx";
+
+/// The trained float32 model `DEFAULT_MODEL` was quantized from.
+pub const FLOAT_MODEL: &str = "tools/unet/model/unet_roi96.onnx";
 
 /// Resolves the model path: absolute, else relative to the workspace root (where the
 /// executables' build tree lives), else relative to the scenario file.

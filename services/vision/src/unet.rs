@@ -22,6 +22,22 @@ pub enum UnetError {
     BadModel { path: PathBuf, message: String },
 }
 
+/// ONNX Runtime allows one environment per process, ever (ort refuses a second one even after
+/// the first is dropped), so every model loaded in a process shares this one. The first runtime
+/// library loaded serves them all.
+fn environment(runtime: &Path) -> Result<ort::environment::Environment, String> {
+    static ENVIRONMENT: std::sync::OnceLock<Result<ort::environment::Environment, String>> =
+        std::sync::OnceLock::new();
+    ENVIRONMENT
+        .get_or_init(|| {
+            ort::init_from(runtime)
+                .map_err(|e| e.to_string())?
+                .build()
+                .map_err(|e| e.to_string())
+        })
+        .clone()
+}
+
 /// Finds `libonnxruntime.so*`: an explicit path, `ORT_DYLIB_PATH`, or the project venv's
 /// `onnxruntime` wheel.
 pub fn find_onnxruntime(explicit: Option<&Path>) -> Result<PathBuf, UnetError> {
@@ -100,10 +116,7 @@ impl UnetLocalizer {
             path: runtime.to_owned(),
             message,
         };
-        let env = ort::init_from(runtime)
-            .map_err(|e| rt_err(e.to_string()))?
-            .build()
-            .map_err(|e| rt_err(e.to_string()))?;
+        let env = environment(runtime).map_err(rt_err)?;
         let bad = |message: String| UnetError::BadModel {
             path: model.to_owned(),
             message,

@@ -12,11 +12,10 @@ use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use millinav_kit::clock::monotonic_ns;
-use millinav_kit::iceoryx2::port::update_connections::UpdateConnections;
 use millinav_kit::iceoryx2::prelude::*;
 use millinav_kit::ports::{FrameInbox, FrameOutbox, Inbox, Outbox};
 use millinav_kit::{iceoryx_config, iox};
-use shm_schemas::{services, FrameHeader, Pose, FRAME_BYTES};
+use shm_schemas::{FrameHeader, Pose, FRAME_BYTES};
 
 use crate::BenchError;
 
@@ -32,7 +31,7 @@ const WARMUP: u64 = 20;
 pub enum Message {
     /// 1020x1020x3 frame through the kit's `FrameOutbox::send` (copies the pixels into shm).
     Frame,
-    /// 1020x1020x3 frame written in place into a loaned shm sample (zero-copy publish).
+    /// 1020x1020x3 frame written in place through `FrameOutbox::send_in_place` (zero-copy).
     FrameLoan,
     /// One `Pose` through `Outbox<Pose>`.
     Pose,
@@ -185,33 +184,6 @@ fn spawn_child(
         .spawn()?)
 }
 
-/// Publisher on the kit's frame service with the kit's QoS, for the zero-copy (loan) path.
-fn raw_frame_publisher(
-    node: &Node<ipc::Service>,
-) -> Result<
-    millinav_kit::iceoryx2::port::publisher::Publisher<ipc::Service, [u8], FrameHeader>,
-    BenchError,
-> {
-    // Must match `millinav_kit::ports::open_frame_service` exactly, or opening fails.
-    let service = node
-        .service_builder(&ServiceName::new(services::FRAME).map_err(iox("name"))?)
-        .publish_subscribe::<[u8]>()
-        .user_header::<FrameHeader>()
-        .history_size(0)
-        .subscriber_max_buffer_size(2)
-        .enable_safe_overflow(true)
-        .max_publishers(16)
-        .max_subscribers(12)
-        .max_nodes(32)
-        .open_or_create()
-        .map_err(iox("frame service"))?;
-    Ok(service
-        .publisher_builder()
-        .initial_max_slice_len(FRAME_BYTES)
-        .create()
-        .map_err(iox("frame publisher"))?)
-}
-
 fn send_iceoryx2(
     rv: &Rendezvous,
     message: Message,
@@ -221,23 +193,8 @@ fn send_iceoryx2(
     let node = node(rv, "bench-tx")?;
     let acks = Inbox::<Pose>::new(&node, ACK_SERVICE)?;
     let frames = match message {
-        Message::Frame => Some(FrameOutbox::new(&node)?),
+        Message::Frame | Message::FrameLoan => Some(FrameOutbox::new(&node)?),
         _ => None,
-    };
-    let (loan, notifier) = match message {
-        Message::FrameLoan => (
-            Some(raw_frame_publisher(&node)?),
-            Some(
-                millinav_kit::ports::open_event(
-                    &node,
-                    &services::event_service_of(services::FRAME),
-                )?
-                .notifier_builder()
-                .create()
-                .map_err(iox("notifier"))?,
-            ),
-        ),
-        _ => (None, None),
     };
     let poses = match message {
         Message::Pose => Some(Outbox::<Pose>::new(&node, POSE_SERVICE)?),
@@ -247,22 +204,15 @@ fn send_iceoryx2(
         let stamp = monotonic_ns();
         if let Some(f) = &frames {
             f.update_connections();
-            f.send(frame_header(seq, stamp), pixels, |_| {})?;
-        }
-        if let (Some(p), Some(n)) = (&loan, &notifier) {
-            let _ = p.update_connections();
-            let mut sample = p.loan_slice_uninit(FRAME_BYTES).map_err(iox("loan"))?;
-            *sample.user_header_mut() = frame_header(seq, stamp);
-            // A camera or renderer writes its pixels straight into the loan; here only the
-            // first row is written, the transport cost is what is measured.
-            for (dst, src) in sample.payload_mut()[..3 * 1020].iter_mut().zip(pixels) {
-                dst.write(*src);
+            if message == Message::FrameLoan {
+                // A camera or renderer writes its pixels straight into the loan; here only the
+                // first row is written: the transport cost is what is measured.
+                f.send_in_place(frame_header(seq, stamp), FRAME_BYTES, |payload| {
+                    payload[..3 * 1020].copy_from_slice(&pixels[..3 * 1020]);
+                })?;
+            } else {
+                f.send(frame_header(seq, stamp), pixels, |_| {})?;
             }
-            // SAFETY: u8 has no invalid bit patterns and the shared-memory segment is mapped,
-            // zero-filled or previously written memory; the rest of the frame is stale pixels.
-            let sample = unsafe { sample.assume_init() };
-            sample.send().map_err(iox("send"))?;
-            n.notify().map_err(iox("notify"))?;
         }
         if let Some(p) = &poses {
             p.update_connections();

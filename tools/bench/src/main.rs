@@ -34,8 +34,9 @@ struct Cli {
     /// Scratch directory (sockets, iceoryx2 root, the end-to-end run); default a fresh one in /tmp.
     #[arg(long)]
     work_dir: Option<PathBuf>,
-    /// Also time the experiments tool (`experiments --trials 1 --controllers smc-dob`, fast
-    /// mode and process set; one sample each, minutes).
+    /// Also time the experiments tool: the full matrix in fast mode (`--trials 3 --beyond`, a
+    /// few minutes) and one full-length cell through the process set (about 5 minutes); the
+    /// process-set matrix is extrapolated from that cell.
     #[arg(long)]
     experiments: bool,
     /// Directory holding the `millinav` process-set binaries; default: next to this executable.
@@ -416,9 +417,6 @@ fn e2e_rows(bin_dir: &std::path::Path, work: &std::path::Path, seconds: f64) -> 
 }
 
 fn experiments_rows(cli: &Cli, bin_dir: &std::path::Path, work: &std::path::Path) -> Vec<Row> {
-    let what = |mode: &str| {
-        format!("experiments, {mode}: SMC-DOB column of the matrix, 1 trial (wall time)")
-    };
     let exe = bin_dir.join("experiments");
     if !cli.experiments || !exe.is_file() {
         let why = if exe.is_file() {
@@ -432,31 +430,56 @@ fn experiments_rows(cli: &Cli, bin_dir: &std::path::Path, work: &std::path::Path
             why,
         )];
     }
-    ["fast", "process"]
-        .iter()
-        .map(|mode| {
-            let t = std::time::Instant::now();
-            let status = std::process::Command::new(&exe)
-                .current_dir(millinav_bench::workspace_root())
-                .args([
-                    "--mode",
-                    mode,
-                    "--trials",
-                    "1",
-                    "--controllers",
-                    "smc-dob",
-                    "--out",
-                ])
-                .arg(work.join(format!("experiments-{mode}")))
-                .stdout(std::process::Stdio::null())
-                .stderr(std::process::Stdio::null())
-                .status();
-            let ns = t.elapsed().as_nanos() as f64;
-            match status {
-                Ok(s) if s.success() => Row::time("experiments", what(mode), Stats::of(&[ns])),
-                Ok(s) => Row::text("experiments", what(mode), format!("failed ({s})")),
-                Err(e) => Row::text("experiments", what(mode), format!("failed: {e}")),
-            }
-        })
-        .collect()
+    // The README's matrix command, and one full-length cell of it through the process set.
+    let full_matrix: &[&str] = &["--trials", "3", "--beyond"];
+    let one_cell: &[&str] = &[
+        "--mode",
+        "process",
+        "--trials",
+        "1",
+        "--controllers",
+        "pid",
+        "--only",
+        "20cp_static",
+    ];
+    let cells = millinav_experiments::paper_matrix(3, true).len();
+    let run = |label: &str, args: &[&str]| -> Result<f64, String> {
+        let t = std::time::Instant::now();
+        let status = std::process::Command::new(&exe)
+            .current_dir(millinav_bench::workspace_root())
+            .args(args)
+            .arg("--out")
+            .arg(work.join(format!("experiments-{label}")))
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .map_err(|e| format!("failed: {e}"))?;
+        if !status.success() {
+            return Err(format!("failed ({status})"));
+        }
+        Ok(t.elapsed().as_nanos() as f64)
+    };
+    let mut rows = Vec::new();
+    let fast_what = format!("experiments, fast mode: full matrix, {cells} runs (wall time)");
+    match run("fast", full_matrix) {
+        Ok(ns) => rows.push(Row::time("experiments", fast_what, Stats::of(&[ns]))),
+        Err(why) => rows.push(Row::text("experiments", fast_what, why)),
+    }
+    let process_what =
+        "experiments, process set: one 240 s cell (20 cP static, PID), wall time".to_string();
+    match run("process", one_cell) {
+        Ok(ns) => {
+            rows.push(Row::time("experiments", process_what, Stats::of(&[ns])));
+            rows.push(Row::text(
+                "experiments",
+                format!("experiments, process set: full matrix ({cells} runs), extrapolated"),
+                format!(
+                    "≈ {:.1} h ({cells} × the cell above)",
+                    ns * 1e-9 * cells as f64 / 3600.0
+                ),
+            ));
+        }
+        Err(why) => rows.push(Row::text("experiments", process_what, why)),
+    }
+    rows
 }

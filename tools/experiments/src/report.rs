@@ -218,8 +218,12 @@ pub fn metric_bars(
     chart
         .configure_mesh()
         .y_desc(format!("{} (mm)", metric.label()))
-        .x_labels(conditions.len())
+        // Ticks every half condition; only the centres (i + 0.5) carry a label.
+        .x_labels(2 * conditions.len() + 1)
         .x_label_formatter(&|x| {
+            if (x - x.floor() - 0.5).abs() > 0.01 {
+                return String::new();
+            }
             conditions
                 .get(x.floor() as usize)
                 .map(|(v, f)| format!("{} cP {}", -*v as f64 / 10.0, f.label()))
