@@ -25,7 +25,12 @@ fn compare(cell: Cell) {
     let mut base = Scenario::load(&root.join("scenarios/paper.toml")).expect("paper scenario");
     base.run.duration_s = 20.0;
     let text = cell_scenario(&base, &cell, &root).expect("cell scenario");
-    let work = std::env::temp_dir().join(format!("millinav-fvp-{}", std::process::id()));
+    // One directory per cell: the tests run in parallel and each removes its own at the end.
+    let work = std::env::temp_dir().join(format!(
+        "millinav-fvp-{}-{}",
+        std::process::id(),
+        cell.name()
+    ));
     let scenario = Scenario::parse(&text, &work.join("cell.toml")).expect("parse cell");
     let reference = reference_of(&scenario).expect("reference");
     let resistance = fieldmaps::rig::CoilLimits::default().coil_resistance_ohm;

@@ -366,6 +366,62 @@ pub fn reference_of(scenario: &Scenario) -> anyhow::Result<Reference> {
     )?)
 }
 
+/// Writes one fast-mode run as a Rerun recording at `path`: the reference path, then at 10 Hz of
+/// simulated time the robot, its reference point, the tracking error and the peak coil current
+/// (same entity names as the process set's recordings where they mean the same thing).
+pub fn write_rrd(
+    path: &Path,
+    run_name: &str,
+    trace: &[TraceRow],
+    reference: &Reference,
+) -> anyhow::Result<()> {
+    use millinav_kit::rerun;
+    let rec = rerun::RecordingStreamBuilder::new("millinav-experiments")
+        .recording_id(run_name.to_owned())
+        .save(path)
+        .with_context(|| format!("opening {}", path.display()))?;
+    let mm = |p: &Vector2<f64>| [(p.x * 1e3) as f32, (p.y * 1e3) as f32];
+    let waypoints: Vec<[f32; 2]> = reference.waypoints().iter().map(mm).collect();
+    rec.log_static("world/planned_path", &rerun::LineStrips2D::new([waypoints]))?;
+    let mut next_log_s = f64::NEG_INFINITY;
+    let mut path_so_far: Vec<[f32; 2]> = Vec::new();
+    for (seq, row) in trace.iter().enumerate() {
+        if row.time_s < next_log_s {
+            continue;
+        }
+        next_log_s = row.time_s + 0.1;
+        millinav_kit::recording::set_time(&rec, secs_to_ns(row.time_s), seq as u64);
+        let target = reference.sample(row.time_s).position_m;
+        path_so_far.push(mm(&row.position_m));
+        rec.log(
+            "world/robot/true",
+            &rerun::Points2D::new([mm(&row.position_m)]).with_radii([1.4]),
+        )?;
+        rec.log(
+            "world/reference",
+            &rerun::Points2D::new([mm(&target)]).with_radii([0.5]),
+        )?;
+        rec.log(
+            "world/actual_path",
+            &rerun::LineStrips2D::new([path_so_far.clone()]),
+        )?;
+        millinav_kit::recording::scalar(
+            &rec,
+            "experiment/error_mm",
+            (row.position_m - target).norm() * 1e3,
+        );
+        millinav_kit::recording::scalar(&rec, "experiment/max_current_a", row.max_abs_current_a);
+        millinav_kit::recording::scalar(
+            &rec,
+            "experiment/wall_contact",
+            f64::from(u8::from(row.wall_contact)),
+        );
+    }
+    rec.flush_blocking()
+        .map_err(|e| anyhow::anyhow!("flushing {}: {e}", path.display()))?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

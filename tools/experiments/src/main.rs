@@ -8,7 +8,8 @@ use clap::{Parser, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use millinav_experiments::report::{self, Outcome};
 use millinav_experiments::{
-    cell_scenario, fast_run, metrics, paper_matrix, process_run, reference_of, Cell, TraceRow,
+    cell_scenario, fast_run, metrics, paper_matrix, process_run, reference_of, write_rrd, Cell,
+    TraceRow,
 };
 use millinav_kit::scenario::Scenario;
 
@@ -44,6 +45,10 @@ struct Args {
     /// Only cells whose name contains one of these (comma separated), e.g. 20cp_q180,4.3cp_static.
     #[arg(long, value_delimiter = ',')]
     only: Vec<String>,
+    /// Skip the per-run Rerun recordings of fast mode (`<out>/runs/<cell>.rrd`; process mode
+    /// always keeps each run's `run.rrd` under `<out>/runs/<cell>/run/`).
+    #[arg(long)]
+    no_rrd: bool,
     /// Worker threads (fast mode).
     #[arg(long, default_value_t = 2)]
     threads: usize,
@@ -96,6 +101,16 @@ fn main() -> anyhow::Result<()> {
                 }
             };
             let reference = reference_of(&scenario)?;
+            if args.mode == Mode::Fast && !args.no_rrd {
+                let runs = args.out.join("runs");
+                std::fs::create_dir_all(&runs)?;
+                write_rrd(
+                    &runs.join(format!("{}.rrd", cell.name())),
+                    &cell.name(),
+                    &trace,
+                    &reference,
+                )?;
+            }
             let m = metrics(
                 &trace,
                 &reference,
