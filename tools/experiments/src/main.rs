@@ -45,6 +45,10 @@ struct Args {
     /// Only cells whose name contains one of these (comma separated), e.g. 20cp_q180,4.3cp_static.
     #[arg(long, value_delimiter = ',')]
     only: Vec<String>,
+    /// Camera frame period and so control period (ms) instead of the base scenario's; e.g. 100
+    /// for the paper's 10 Hz loop.
+    #[arg(long)]
+    frame_period_ms: Option<f64>,
     /// Skip the per-run Rerun recordings of fast mode (`<out>/runs/<cell>.rrd`; process mode
     /// always keeps each run's `run.rrd` under `<out>/runs/<cell>/run/`).
     #[arg(long)]
@@ -60,8 +64,15 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let root = std::env::current_dir()?;
-    let base = Scenario::load(&args.base)
+    let mut base = Scenario::load(&args.base)
         .with_context(|| format!("base scenario {}", args.base.display()))?;
+    if let Some(period) = args.frame_period_ms {
+        anyhow::ensure!(
+            period.is_finite() && (1.0..=1000.0).contains(&period),
+            "--frame-period-ms must be within 1..=1000, got {period}"
+        );
+        base.run.frame_period_ms = period;
+    }
     let mut cells = paper_matrix(args.trials.max(1), args.beyond);
     if !args.controllers.is_empty() {
         cells.retain(|c| args.controllers.contains(&c.controller));
@@ -148,7 +159,10 @@ fn main() -> anyhow::Result<()> {
     outcomes.sort_by_key(|o| o.cell.name());
     let mode = format!("{:?}", args.mode).to_lowercase();
     report::write_csv(&outcomes, &args.out.join("results.csv"))?;
-    let table = report::markdown_table(&outcomes, &mode);
+    let table = report::markdown_table(
+        &outcomes,
+        &format!("{mode}, {} ms frame period", base.run.frame_period_ms),
+    );
     std::fs::write(args.out.join("table.md"), &table)?;
     println!("{table}");
     println!(
