@@ -407,9 +407,9 @@ impl CoilFieldMaps {
         Self::from_parts(grid, coils, data)
     }
 
-    /// The committed maps of the paper rig: `fieldmaps/coils/` in this repository.
+    /// The committed maps of the paper rig: `fieldmaps/coils/` under [`crate::data_root`].
     pub fn default_dir() -> PathBuf {
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("coils")
+        crate::data_root().join("fieldmaps/coils")
     }
 
     /// [`Self::load`] of [`Self::default_dir`].

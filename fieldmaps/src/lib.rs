@@ -22,3 +22,26 @@ pub mod mask;
 pub mod phantom;
 pub mod physics;
 pub mod rig;
+
+/// Environment variable naming the repository root that committed data (coil maps, flow maps,
+/// the UNet model, scenarios) is read from.
+pub const ROOT_ENV: &str = "MILLINAV_ROOT";
+
+/// The repository root the committed data is read from: `MILLINAV_ROOT` when set, else the
+/// nearest ancestor of the working directory that holds the committed coil maps, else the
+/// checkout this binary was compiled from. Looking at run time first matters because build
+/// trees are shared between checkouts (`CARGO_TARGET_DIR`): an up-to-date binary may have been
+/// compiled in another clone, which can since have moved or changed.
+pub fn data_root() -> std::path::PathBuf {
+    use std::path::{Path, PathBuf};
+    let holds_data = |dir: &Path| dir.join("fieldmaps/coils/coils.toml").is_file();
+    if let Some(root) = std::env::var_os(ROOT_ENV).map(PathBuf::from) {
+        return root;
+    }
+    if let Ok(cwd) = std::env::current_dir() {
+        if let Some(found) = cwd.ancestors().find(|d| holds_data(d)) {
+            return found.to_owned();
+        }
+    }
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}

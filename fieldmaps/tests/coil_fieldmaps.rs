@@ -376,3 +376,14 @@ fn invalid_grids_and_parts_are_rejected() {
     let zeros = vec![0.0f32; g.node_count() * 12];
     assert!(CoilFieldMaps::from_parts(g, two, vec![zeros.clone(), zeros]).is_err());
 }
+
+#[test]
+fn data_root_is_found_from_the_working_directory() {
+    // Tests run inside the checkout, so the lookup must land on this repository's data.
+    let root = fieldmaps::data_root();
+    assert!(
+        root.join("fieldmaps/coils/coils.toml").is_file(),
+        "{}",
+        root.display()
+    );
+}

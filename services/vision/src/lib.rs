@@ -19,7 +19,7 @@ use millinav_kit::Runtime;
 use serde::{Deserialize, Serialize};
 use shm_schemas::{deadlines, services, FrameHeader, PixelFormat, Pose, PoseSource};
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use crate::classical::{CapsuleSize, ClassicalLocalizer, Detection, LocalizeError, SearchRect};
 use crate::unet::{find_onnxruntime, UnetError, UnetLocalizer};
@@ -70,15 +70,13 @@ pub const DEFAULT_MODEL: &str = "tools/unet/model/unet_roi96_int8.onnx";
 /// The trained float32 model `DEFAULT_MODEL` was quantized from.
 pub const FLOAT_MODEL: &str = "tools/unet/model/unet_roi96.onnx";
 
-/// Resolves the model path: absolute, else relative to the workspace root (where the
-/// executables' build tree lives), else relative to the scenario file.
+/// Resolves the model path: absolute, else relative to the repository root
+/// (`fieldmaps::data_root`), else relative to the scenario file.
 pub fn resolve_model(config: &VisionConfig, scenario: &Scenario) -> PathBuf {
     if config.model.is_absolute() {
         return config.model.clone();
     }
-    let from_root = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../..")
-        .join(&config.model);
+    let from_root = fieldmaps::data_root().join(&config.model);
     if from_root.exists() {
         return from_root;
     }

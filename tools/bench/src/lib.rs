@@ -11,7 +11,7 @@ use std::path::PathBuf;
 
 /// The workspace root (scenarios, committed model).
 pub fn workspace_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+    fieldmaps::data_root()
 }
 
 #[derive(Debug, thiserror::Error)]
