@@ -4,10 +4,11 @@
 //! when the port goes away.
 
 pub mod link;
+pub mod safety;
 pub use millinav_teensy_protocol as protocol;
 
+// The protocol crate carries its own coil count so it can stay dependency-free.
 const _: () = assert!(protocol::COIL_COUNT == shm_schemas::COIL_COUNT);
-pub mod safety;
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
