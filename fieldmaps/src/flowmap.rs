@@ -125,6 +125,9 @@ impl FlowMap {
             self.origin_m.y * 1e3,
             self.spacing_m * 1e3
         ));
+        if let Some(peak) = self.chamber_peak_mps {
+            out.push_str(&format!("# chamber_peak_mps = {peak}\n"));
+        }
         out.push_str("x_mm,y_mm,vx_mps,vy_mps\n");
         for j in 0..self.ny {
             for i in 0..self.nx {
@@ -280,5 +283,20 @@ mod tests {
         assert!(FlowMap::parse(&mislabelled).unwrap_err().contains("format"));
         let garbage = text.replacen("0.0000e0", "abc", 1);
         let _ = FlowMap::parse(&garbage);
+    }
+
+    #[test]
+    fn chamber_peak_round_trips_scales_and_rejects_garbage() {
+        let mut map = ramp();
+        assert_eq!(map.condition_peak_speed(), map.peak_speed());
+        map.chamber_peak_mps = Some(0.07);
+        let parsed = FlowMap::parse(&map.to_text()).unwrap();
+        assert_eq!(parsed.chamber_peak_mps, Some(0.07));
+        assert!((parsed.scaled(2.0).condition_peak_speed() - 0.14).abs() < 1e-12);
+        let bad = map
+            .to_text()
+            .replace("# chamber_peak_mps = 0.07", "# chamber_peak_mps = fast");
+        let err = FlowMap::parse(&bad).unwrap_err();
+        assert!(err.contains("chamber_peak_mps"), "{err}");
     }
 }
