@@ -151,6 +151,10 @@ pub struct SmcGains {
     /// rings: with the paper's K4/φ at our 100 Hz the slope is ≈ 9 m̂/Δt and SMC chatters at the
     /// current limit.
     pub sampled_gain_fraction: f64,
+    /// With `auto_schedule`: the nominal error dynamics' natural frequency ω_n = sqrt(K2/K3)
+    /// is kept at or below this many radians per sample (ω_n·Δt), with ζ unchanged. The
+    /// default ω_n (2 Hz) is 0.13 rad per sample at 100 Hz but 1.26 at the paper's 10 Hz.
+    pub sampled_bandwidth_rad: f64,
 }
 
 impl Default for SmcGains {
@@ -173,6 +177,7 @@ impl Default for SmcGains {
             flow_phi_m: 18.0e-3,
             schedule_ref_speed_mps: 0.07,
             sampled_gain_fraction: 0.5,
+            sampled_bandwidth_rad: 0.5,
         }
     }
 }
@@ -212,7 +217,15 @@ impl SmcDob {
         // Sample time as measured, bounded so one odd gap cannot make φ absurd.
         let dt = input.dt_s.clamp(1e-3, 0.2);
         let sampled_limit = g.sampled_gain_fraction.max(1e-3) * self.model.mass_kg / dt;
+        // Slow u_eq's error dynamics (same damping ratio) when the sample time cannot carry them.
+        let omega_n = (g.k2 / g.k3).sqrt();
+        // Drag damps the capsule within a sample as well (c·Δt/m̂), so it earns more bandwidth.
+        let drag_per_sample = self.model.linear_drag_n_s_per_m * dt / self.model.mass_kg;
+        let budget = g.sampled_bandwidth_rad.max(1e-3) * (1.0 + drag_per_sample);
+        let omega_scale = (budget / (omega_n * dt)).min(1.0);
         SmcGains {
+            k1: g.k1 * omega_scale,
+            k2: g.k2 * omega_scale * omega_scale,
             k4_n,
             eta_s: lerp(g.eta_s, g.flow_eta_s) * (1.0 + 0.75 * zone),
             phi_m: phi_m.max(g.gamma * k4_n / sampled_limit),
@@ -342,5 +355,59 @@ impl ControllerKind {
                 model,
             )),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::reference::ReferenceSample;
+
+    fn input(dt_s: f64) -> ControlInput {
+        ControlInput {
+            dt_s,
+            position_m: Vector2::zeros(),
+            velocity_mps: Vector2::zeros(),
+            reference: ReferenceSample {
+                position_m: Vector2::zeros(),
+                velocity_mps: Vector2::zeros(),
+                acceleration_mps2: Vector2::zeros(),
+                finished: false,
+            },
+            flow_mps: Vector2::zeros(),
+            high_disturbance: false,
+        }
+    }
+
+    fn scheduled(dt_s: f64, drag: f64) -> SmcGains {
+        let model = NominalModel {
+            mass_kg: 5e-5,
+            linear_drag_n_s_per_m: drag,
+        };
+        let gains = SmcGains {
+            auto_schedule: true,
+            ..SmcGains::default()
+        };
+        SmcDob::new(gains, model).scheduled(&input(dt_s))
+    }
+
+    #[test]
+    fn schedule_keeps_error_dynamics_at_100_hz_and_slows_them_at_10_hz() {
+        let paper = SmcGains::default();
+        let fast = scheduled(0.01, 1.2e-4);
+        assert_eq!((fast.k1, fast.k2), (paper.k1, paper.k2));
+
+        let slow = scheduled(0.1, 1.2e-4);
+        let omega_dt = (slow.k2 / slow.k3).sqrt() * 0.1;
+        let budget = paper.sampled_bandwidth_rad * (1.0 + 1.2e-4 * 0.1 / 5e-5);
+        assert!((omega_dt - budget).abs() < 1e-9, "ω_n·Δt {omega_dt}");
+        // Same damping ratio ζ = K1 / (2 sqrt(K2 K3)).
+        let zeta = |g: &SmcGains| g.k1 / (2.0 * (g.k2 * g.k3).sqrt());
+        assert!((zeta(&slow) - zeta(&paper)).abs() < 1e-9);
+        // More drag damps more per sample, so it keeps more bandwidth.
+        assert!(scheduled(0.1, 5.6e-4).k2 > slow.k2);
+        // And the switching slope stays within the sampled-loop bound.
+        let slope = slow.gamma * slow.k4_n / slow.phi_m;
+        assert!(slope <= paper.sampled_gain_fraction * 5e-5 / 0.1 * (1.0 + 1e-9));
     }
 }

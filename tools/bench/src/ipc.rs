@@ -3,7 +3,7 @@
 //! (`bench ipc-child`); both stamp CLOCK_MONOTONIC, which is one clock for every process, so
 //! one-way latency is measured directly. Each message is acknowledged before the next is sent
 //! (no queueing), and the receiver sleeps in a blocking wait as the services do, so wake-up is
-//! included.
+//! included. Over iceoryx2 the latency is also split into its phases (send, wake-up, take).
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
@@ -41,6 +41,46 @@ pub enum Message {
 pub enum Transport {
     Iceoryx2,
     Uds,
+}
+
+/// Where the two processes may run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Placement {
+    /// Wherever the scheduler puts them, as the services run: the receiver usually sleeps on
+    /// the other core, and waking it there costs an inter-processor interrupt.
+    Free,
+    /// Both on one core (the first this process may use): the wake-up is a local switch.
+    OneCore,
+}
+
+/// Pins the calling thread (and the children it spawns) to one core until dropped.
+struct Pinned(Option<nix::sched::CpuSet>);
+
+impl Pinned {
+    fn new(placement: Placement) -> Result<Self, BenchError> {
+        use nix::sched::{sched_getaffinity, sched_setaffinity, CpuSet};
+        use nix::unistd::Pid;
+        if placement == Placement::Free {
+            return Ok(Self(None));
+        }
+        let affinity = |e: nix::Error| setup(&format!("cpu affinity: {e}"));
+        let before = sched_getaffinity(Pid::from_raw(0)).map_err(affinity)?;
+        let first = (0..CpuSet::count())
+            .find(|&cpu| before.is_set(cpu).unwrap_or(false))
+            .ok_or_else(|| setup("no usable cpu"))?;
+        let mut one = CpuSet::new();
+        one.set(first).map_err(affinity)?;
+        sched_setaffinity(Pid::from_raw(0), &one).map_err(affinity)?;
+        Ok(Self(Some(before)))
+    }
+}
+
+impl Drop for Pinned {
+    fn drop(&mut self) {
+        if let Some(before) = &self.0 {
+            let _ = nix::sched::sched_setaffinity(nix::unistd::Pid::from_raw(0), before);
+        }
+    }
 }
 
 /// Where the two processes meet.
@@ -97,8 +137,22 @@ fn payload_len(message: Message) -> usize {
     }
 }
 
-/// Runs one measurement: spawns the receiver, sends `count` messages, returns the one-way
-/// latencies (ns) the receiver saw.
+/// One measurement: the one-way latencies (ns) the receiver saw and, over iceoryx2, where each
+/// went (the three phases add up to the latency).
+#[derive(Debug, Clone, Default)]
+pub struct Measured {
+    pub latency_ns: Vec<f64>,
+    /// Sender stamp → `send` returned (loan, write, publish, notify).
+    pub send_ns: Vec<f64>,
+    /// `send` returned → the receiver's blocking wait returned (the kernel's cross-process
+    /// wake-up: iceoryx2's event is a Unix datagram).
+    pub wake_ns: Vec<f64>,
+    /// Receiver awake → sample in hand (`latest`).
+    pub take_ns: Vec<f64>,
+}
+
+/// Runs one measurement: spawns the receiver, sends `count` messages, returns what the
+/// receiver saw.
 pub fn measure(
     exe: &Path,
     dir: &Path,
@@ -106,7 +160,9 @@ pub fn measure(
     message: Message,
     count: u64,
     pixels: &[u8],
-) -> Result<Vec<f64>, BenchError> {
+    placement: Placement,
+) -> Result<Measured, BenchError> {
+    let _pinned = Pinned::new(placement)?;
     let rv = Rendezvous::new(dir);
     let _ = std::fs::remove_file(&rv.socket);
     let listener = match transport {
@@ -129,27 +185,76 @@ pub fn measure(
     let sent = match transport {
         Transport::Iceoryx2 => send_iceoryx2(&rv, message, count, pixels),
         Transport::Uds => match listener {
-            Some(l) => send_uds(&l, message, count, pixels),
+            Some(l) => send_uds(&l, message, count, pixels).map(|()| Vec::new()),
             None => Err(setup("no socket")),
         },
     };
-    if let Err(e) = sent {
-        let _ = child.kill();
-        let _ = child.wait();
-        return Err(e);
-    }
-    let mut latencies = Vec::new();
+    let send_done = match sent {
+        Ok(done) => done,
+        Err(e) => {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(e);
+        }
+    };
+    let mut measured = Measured::default();
     for line in lines {
         let line = line?;
-        if let Ok(v) = line.trim().parse::<f64>() {
-            latencies.push(v);
+        let Some(received) = Received::parse(&line) else {
+            continue;
+        };
+        measured
+            .latency_ns
+            .push(received.got_ns.saturating_sub(received.stamp_ns) as f64);
+        if let (Some(woke), Some(&done)) = (received.woke_ns, send_done.get(received.seq as usize))
+        {
+            measured
+                .send_ns
+                .push(done.saturating_sub(received.stamp_ns) as f64);
+            measured.wake_ns.push(woke.saturating_sub(done) as f64);
+            measured
+                .take_ns
+                .push(received.got_ns.saturating_sub(woke) as f64);
         }
     }
     let status = child.wait()?;
     if !status.success() {
         return Err(setup(&format!("receiver exited with {status}")));
     }
-    Ok(latencies)
+    Ok(measured)
+}
+
+/// One measured message as the receiver reports it: `seq stamp got [woke]` (ns, CLOCK_MONOTONIC).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Received {
+    seq: u64,
+    stamp_ns: u64,
+    got_ns: u64,
+    woke_ns: Option<u64>,
+}
+
+impl Received {
+    fn line(&self) -> String {
+        match self.woke_ns {
+            Some(w) => format!("{} {} {} {w}", self.seq, self.stamp_ns, self.got_ns),
+            None => format!("{} {} {}", self.seq, self.stamp_ns, self.got_ns),
+        }
+    }
+
+    fn parse(line: &str) -> Option<Self> {
+        let mut f = line.split_whitespace().map(|v| v.parse::<u64>());
+        let (seq, stamp_ns, got_ns) = (f.next()?.ok()?, f.next()?.ok()?, f.next()?.ok()?);
+        let woke_ns = match f.next() {
+            Some(v) => Some(v.ok()?),
+            None => None,
+        };
+        Some(Self {
+            seq,
+            stamp_ns,
+            got_ns,
+            woke_ns,
+        })
+    }
 }
 
 fn setup(msg: &str) -> BenchError {
@@ -184,12 +289,13 @@ fn spawn_child(
         .spawn()?)
 }
 
+/// Sends `count` messages (+ warm-up) and returns when each `send` returned, indexed by seq.
 fn send_iceoryx2(
     rv: &Rendezvous,
     message: Message,
     count: u64,
     pixels: &[u8],
-) -> Result<(), BenchError> {
+) -> Result<Vec<u64>, BenchError> {
     let node = node(rv, "bench-tx")?;
     let acks = Inbox::<Pose>::new(&node, ACK_SERVICE)?;
     let frames = match message {
@@ -200,7 +306,7 @@ fn send_iceoryx2(
         Message::Pose => Some(Outbox::<Pose>::new(&node, POSE_SERVICE)?),
         _ => None,
     };
-    let send = |seq: u64| -> Result<(), BenchError> {
+    let send = |seq: u64| -> Result<u64, BenchError> {
         let stamp = monotonic_ns();
         if let Some(f) = &frames {
             f.update_connections();
@@ -218,7 +324,7 @@ fn send_iceoryx2(
             p.update_connections();
             p.send(pose(seq, stamp))?;
         }
-        Ok(())
+        Ok(monotonic_ns())
     };
     let wait_ack = |seq: u64, timeout: Duration| -> Result<bool, BenchError> {
         let deadline = std::time::Instant::now() + timeout;
@@ -245,8 +351,9 @@ fn send_iceoryx2(
     if !connected {
         return Err(setup("iceoryx2 receiver never acknowledged"));
     }
+    let mut send_done = vec![0; (count + WARMUP + 1) as usize];
     for seq in 1..=count + WARMUP {
-        send(seq)?;
+        send_done[seq as usize] = send(seq)?;
         if !wait_ack(seq, Duration::from_secs(2))? {
             return Err(setup(&format!("no ack for message {seq}")));
         }
@@ -258,7 +365,7 @@ fn send_iceoryx2(
             break;
         }
     }
-    Ok(())
+    Ok(send_done)
 }
 
 fn send_uds(
@@ -285,7 +392,7 @@ fn send_uds(
 /// The receiver (child process): prints `ready`, receives until the stop message, prints one
 /// latency (ns) per measured message.
 pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<(), BenchError> {
-    let mut latencies: Vec<u64> = Vec::new();
+    let mut received: Vec<Received> = Vec::new();
     let mut out = std::io::stdout().lock();
     match transport {
         Transport::Uds => {
@@ -303,7 +410,12 @@ pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<
                     break;
                 }
                 if seq > WARMUP {
-                    latencies.push(now.saturating_sub(stamp));
+                    received.push(Received {
+                        seq,
+                        stamp_ns: stamp,
+                        got_ns: now,
+                        woke_ns: None,
+                    });
                 }
             }
         }
@@ -324,8 +436,10 @@ pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<
             let mut idle = std::time::Instant::now();
             loop {
                 let mut got: Option<(u64, u64, u64)> = None;
+                let mut woke = 0;
                 if let Some(f) = &frames {
                     let _ = f.listener.timed_wait(|_| {}, Duration::from_millis(100));
+                    woke = monotonic_ns();
                     if let Some(sample) = f.latest()? {
                         let now = monotonic_ns();
                         let h = sample.user_header();
@@ -334,6 +448,7 @@ pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<
                 }
                 if let Some(p) = &poses {
                     let _ = p.listener.timed_wait(|_| {}, Duration::from_millis(100));
+                    woke = monotonic_ns();
                     if let Some(m) = p.latest()? {
                         got = Some((m.frame_seq, m.capture_time_ns, monotonic_ns()));
                     }
@@ -347,7 +462,12 @@ pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<
                             break;
                         }
                         if seq > WARMUP {
-                            latencies.push(now.saturating_sub(stamp));
+                            received.push(Received {
+                                seq,
+                                stamp_ns: stamp,
+                                got_ns: now,
+                                woke_ns: Some(woke),
+                            });
                         }
                     }
                     None if idle.elapsed() > idle_limit => {
@@ -358,9 +478,37 @@ pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<
             }
         }
     }
-    for l in latencies {
-        writeln!(out, "{l}")?;
+    for r in received {
+        writeln!(out, "{}", r.line())?;
     }
     out.flush()?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn receiver_lines_round_trip_and_reject_garbage() {
+        for r in [
+            Received {
+                seq: 7,
+                stamp_ns: 100,
+                got_ns: 150,
+                woke_ns: Some(140),
+            },
+            Received {
+                seq: 8,
+                stamp_ns: 200,
+                got_ns: 260,
+                woke_ns: None,
+            },
+        ] {
+            assert_eq!(Received::parse(&r.line()), Some(r));
+        }
+        assert_eq!(Received::parse("ready"), None);
+        assert_eq!(Received::parse("1 2"), None);
+        assert_eq!(Received::parse("1 2 3 x"), None);
+    }
 }

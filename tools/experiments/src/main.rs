@@ -73,13 +73,43 @@ fn main() -> anyhow::Result<()> {
         );
         base.run.frame_period_ms = period;
     }
-    let mut cells = paper_matrix(args.trials.max(1), args.beyond);
+    // Naming a beyond-the-paper controller asks for it, with or without --beyond.
+    let beyond = args.beyond
+        || args
+            .controllers
+            .iter()
+            .any(|c| matches!(c.as_str(), "smc-dob-auto" | "smc-auto"));
+    let all_controllers: Vec<String> =
+        paper_matrix(1, true)
+            .into_iter()
+            .fold(Vec::new(), |mut names, c| {
+                if !names.contains(&c.controller) {
+                    names.push(c.controller);
+                }
+                names
+            });
+    if let Some(unknown) = args
+        .controllers
+        .iter()
+        .find(|c| !all_controllers.contains(c))
+    {
+        anyhow::bail!(
+            "unknown controller {unknown:?} in --controllers; known: {}",
+            all_controllers.join(", ")
+        );
+    }
+    let mut cells = paper_matrix(args.trials.max(1), beyond);
     if !args.controllers.is_empty() {
         cells.retain(|c| args.controllers.contains(&c.controller));
     }
     if !args.only.is_empty() {
         cells.retain(|c| args.only.iter().any(|o| c.name().contains(o.as_str())));
     }
+    anyhow::ensure!(
+        !cells.is_empty(),
+        "no cell of the matrix matches --only {:?} (cell names look like 4.3cp_q250_smc-dob-auto_s1)",
+        args.only
+    );
     std::fs::create_dir_all(&args.out)?;
     let bin_dir = std::env::current_exe()?
         .parent()
@@ -163,6 +193,7 @@ fn main() -> anyhow::Result<()> {
         &outcomes,
         &format!("{mode}, {} ms frame period", base.run.frame_period_ms),
     );
+    let table = table + &report::target_checks(&outcomes);
     std::fs::write(args.out.join("table.md"), &table)?;
     println!("{table}");
     println!(
