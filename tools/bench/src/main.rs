@@ -34,11 +34,16 @@ struct Cli {
     /// Scratch directory (sockets, iceoryx2 root, the end-to-end run); default a fresh one in /tmp.
     #[arg(long)]
     work_dir: Option<PathBuf>,
-    /// Also time the experiments tool: the full matrix in fast mode (`--trials 3 --beyond`, a
-    /// few minutes) and one full-length cell through the process set (about 5 minutes); the
-    /// process-set matrix is extrapolated from that cell.
+    /// Also time the experiments tool at the paper's 10 Hz loop and at 100 Hz: the full matrix
+    /// in fast mode (`--trials 3 --beyond`, ≈ 2 and ≈ 5 minutes) and one full-length cell
+    /// through the process set (≈ 20 s and ≈ 3 minutes), from which the process-set matrix is
+    /// extrapolated.
     #[arg(long)]
     experiments: bool,
+    /// With --experiments: run the whole process-set matrix at 10 Hz (≈ 35 minutes) instead of
+    /// extrapolating it from one cell.
+    #[arg(long, requires = "experiments")]
+    experiments_process_matrix: bool,
     /// Directory holding the `millinav` process-set binaries; default: next to this executable.
     #[arg(long)]
     bin_dir: Option<PathBuf>,
@@ -462,18 +467,8 @@ fn experiments_rows(cli: &Cli, bin_dir: &std::path::Path, work: &std::path::Path
             why,
         )];
     }
-    // The README's matrix command, and one full-length cell of it through the process set.
-    let full_matrix: &[&str] = &["--trials", "3", "--beyond"];
-    let one_cell: &[&str] = &[
-        "--mode",
-        "process",
-        "--trials",
-        "1",
-        "--controllers",
-        "pid",
-        "--only",
-        "20cp_static",
-    ];
+    // The README's matrix commands (10 Hz and 100 Hz), and through the process set one
+    // full-length cell of each, or the whole 10 Hz matrix.
     let cells = millinav_experiments::paper_matrix(3, true).len();
     let run = |label: &str, args: &[&str]| -> Result<f64, String> {
         let t = std::time::Instant::now();
@@ -491,27 +486,72 @@ fn experiments_rows(cli: &Cli, bin_dir: &std::path::Path, work: &std::path::Path
         }
         Ok(t.elapsed().as_nanos() as f64)
     };
+    let one_cell: &[&str] = &[
+        "--mode",
+        "process",
+        "--trials",
+        "1",
+        "--controllers",
+        "pid",
+        "--only",
+        "20cp_static",
+    ];
     let mut rows = Vec::new();
-    let fast_what = format!("experiments, fast mode: full matrix, {cells} runs (wall time)");
-    match run("fast", full_matrix) {
-        Ok(ns) => rows.push(Row::time("experiments", fast_what, Stats::of(&[ns]))),
-        Err(why) => rows.push(Row::text("experiments", fast_what, why)),
-    }
-    let process_what =
-        "experiments, process set: one 240 s cell (20 cP static, PID), wall time".to_string();
-    match run("process", one_cell) {
+    let push = |rows: &mut Vec<Row>, what: String, measured: Result<f64, String>| match measured {
         Ok(ns) => {
-            rows.push(Row::time("experiments", process_what, Stats::of(&[ns])));
+            rows.push(Row::time("experiments", what, Stats::of(&[ns])));
+            Some(ns)
+        }
+        Err(why) => {
+            rows.push(Row::text("experiments", what, why));
+            None
+        }
+    };
+    for (rate, period) in [("10 Hz", Some("100")), ("100 Hz", None)] {
+        let period_args: Vec<&str> = period
+            .map(|p| vec!["--frame-period-ms", p])
+            .unwrap_or_default();
+        let full: Vec<&str> = ["--trials", "3", "--beyond"]
+            .into_iter()
+            .chain(period_args.iter().copied())
+            .collect();
+        push(
+            &mut rows,
+            format!("experiments at {rate}, fast mode: full matrix, {cells} runs (wall time)"),
+            run(&format!("fast-{rate}"), &full),
+        );
+        if period.is_some() && cli.experiments_process_matrix {
+            let args: Vec<&str> = ["--mode", "process"]
+                .into_iter()
+                .chain(full.iter().copied())
+                .collect();
+            push(
+                &mut rows,
+                format!(
+                    "experiments at {rate}, process set: full matrix, {cells} runs (wall time)"
+                ),
+                run(&format!("process-{rate}"), &args),
+            );
+            continue;
+        }
+        let args: Vec<&str> = one_cell.iter().chain(period_args.iter()).copied().collect();
+        let cell = push(
+            &mut rows,
+            format!("experiments at {rate}, process set: one 240 s cell (20 cP static, PID)"),
+            run(&format!("process-{rate}"), &args),
+        );
+        if let Some(ns) = cell {
             rows.push(Row::text(
                 "experiments",
-                format!("experiments, process set: full matrix ({cells} runs), extrapolated"),
+                format!(
+                    "experiments at {rate}, process set: full matrix ({cells} runs), extrapolated"
+                ),
                 format!(
                     "≈ {:.1} h ({cells} × the cell above)",
                     ns * 1e-9 * cells as f64 / 3600.0
                 ),
             ));
         }
-        Err(why) => rows.push(Row::text("experiments", process_what, why)),
     }
     rows
 }

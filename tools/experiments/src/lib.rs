@@ -271,6 +271,21 @@ pub fn process_run(
     read_truth(&run_dir.join("truth.csv"))
 }
 
+/// The trace of an earlier `process_run` of the scenario `scenario_text` in `dir`; an error if
+/// it is missing or was run from a different scenario.
+pub fn recorded_run(scenario_text: &str, dir: &Path) -> anyhow::Result<Vec<TraceRow>> {
+    let recorded = dir.join("scenario.toml");
+    let text = std::fs::read_to_string(&recorded)
+        .with_context(|| format!("no recorded run: reading {}", recorded.display()))?;
+    if text != scenario_text {
+        bail!(
+            "{} was run from another scenario than this cell's; run it again without --reuse-runs",
+            recorded.display()
+        );
+    }
+    read_truth(&dir.join("run").join("truth.csv"))
+}
+
 /// Parses a plant truth.csv into a trace (one row per frame; republished frames dropped).
 pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TraceRow>> {
     let text =
@@ -316,7 +331,11 @@ pub struct Metrics {
 }
 
 /// "Failed to complete": the error stays above `FAIL_ERROR_M` for longer than `FAIL_TIME_S`
-/// (the robot was lost or stuck), or the robot is not within `FAIL_ERROR_M` of the end.
+/// (the robot was lost or stuck), or the robot never arrives: it is not within `FAIL_ERROR_M`
+/// of the final waypoint at any time after the reference reached it (a run cut short before
+/// that must end within `FAIL_ERROR_M` of the reference). Arrival, not the last sample, because
+/// at the outlet of the 10 cm/s maps the pulsatile jet pushes the capsule out and back every
+/// second or so, and the last sample would make completion a coin toss.
 pub const FAIL_ERROR_M: f64 = 5.0e-3;
 pub const FAIL_TIME_S: f64 = 2.0;
 
@@ -325,9 +344,14 @@ pub fn metrics(trace: &[TraceRow], reference: &Reference, coil_resistance_ohm: f
     let mut above_since: Option<f64> = None;
     let mut failed = false;
     let mut energy = 0.0;
+    let mut reference_finished = false;
+    let mut arrived = false;
     for (i, row) in trace.iter().enumerate() {
-        let e = (row.position_m - reference.sample(row.time_s).position_m).norm();
+        let sample = reference.sample(row.time_s);
+        let e = (row.position_m - sample.position_m).norm();
         errors.push(e);
+        reference_finished |= sample.finished;
+        arrived |= sample.finished && e <= FAIL_ERROR_M;
         if e > FAIL_ERROR_M {
             let since = *above_since.get_or_insert(row.time_s);
             failed |= row.time_s - since > FAIL_TIME_S;
@@ -351,7 +375,12 @@ pub fn metrics(trace: &[TraceRow], reference: &Reference, coil_resistance_ohm: f
         rmse_mm: rmse * 1e3,
         p95_mm: p95 * 1e3,
         max_mm: sorted.last().copied().unwrap_or(f64::NAN) * 1e3,
-        completed: !failed && final_error <= FAIL_ERROR_M,
+        completed: !failed
+            && if reference_finished {
+                arrived
+            } else {
+                final_error <= FAIL_ERROR_M
+            },
         wall_contact_frames: trace.iter().filter(|r| r.wall_contact).count(),
         peak_current_a: trace.iter().fold(0.0, |m, r| m.max(r.max_abs_current_a)),
         energy_j: energy,
@@ -454,5 +483,36 @@ mod tests {
         let m = metrics(&lost, &reference, 10.0);
         assert!(!m.completed);
         assert!((m.max_mm - 20.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn completion_means_arriving_at_the_end() {
+        // 10 mm at 1 mm/s: the reference reaches the end at 10 s; the run lasts 11.5 s.
+        let reference = Reference::new(&[[0.0, 0.0], [0.01, 0.0]], 1e-3, 0.0).unwrap();
+        let trace = |offset_after: f64, offset_m: f64| -> Vec<TraceRow> {
+            (0..=115)
+                .map(|i| {
+                    let t = i as f64 * 0.1;
+                    let offset = if t >= offset_after { offset_m } else { 0.0 };
+                    TraceRow {
+                        time_s: t,
+                        position_m: reference.sample(t).position_m + Vector2::new(0.0, offset),
+                        wall_contact: false,
+                        max_abs_current_a: 0.0,
+                        sum_sq_current_a2: 0.0,
+                    }
+                })
+                .collect()
+        };
+        // Arrived, then pushed 8 mm off for the last second: completed.
+        assert!(metrics(&trace(10.55, 8e-3), &reference, 10.0).completed);
+        // 6 mm off from just before the end on (1.6 s, under the lost-for-2 s rule): it never
+        // arrived, so it did not complete.
+        assert!(!metrics(&trace(9.95, 6e-3), &reference, 10.0).completed);
+        // Cut short before the reference ends: judged by the last sample, as before.
+        let short: Vec<TraceRow> = trace(5.0, 6e-3).into_iter().take(60).collect();
+        assert!(!metrics(&short, &reference, 10.0).completed);
+        let short: Vec<TraceRow> = trace(99.0, 0.0).into_iter().take(60).collect();
+        assert!(metrics(&short, &reference, 10.0).completed);
     }
 }

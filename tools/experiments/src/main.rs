@@ -8,8 +8,8 @@ use clap::{Parser, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use millinav_experiments::report::{self, Outcome};
 use millinav_experiments::{
-    cell_scenario, fast_run, metrics, paper_matrix, process_run, reference_of, write_rrd, Cell,
-    TraceRow,
+    cell_scenario, fast_run, metrics, paper_matrix, process_run, recorded_run, reference_of,
+    write_rrd, Cell, TraceRow,
 };
 use millinav_kit::scenario::Scenario;
 
@@ -53,6 +53,11 @@ struct Args {
     /// always keeps each run's `run.rrd` under `<out>/runs/<cell>/run/`).
     #[arg(long)]
     no_rrd: bool,
+    /// Process mode: take each cell's ground truth from an earlier run of the same cell under
+    /// `<out>/runs/` instead of running it again (to re-report after a change to the metrics or
+    /// figures). A cell whose recorded scenario differs is an error; wall_s then is read time.
+    #[arg(long)]
+    reuse_runs: bool,
     /// Worker threads (fast mode).
     #[arg(long, default_value_t = 2)]
     threads: usize,
@@ -137,6 +142,9 @@ fn main() -> anyhow::Result<()> {
             let t0 = Instant::now();
             let trace = match args.mode {
                 Mode::Fast => fast_run(&scenario)?,
+                Mode::Process if args.reuse_runs => {
+                    recorded_run(&text, &args.out.join("runs").join(cell.name()))?
+                }
                 Mode::Process => {
                     process_run(&text, &bin_dir, &args.out.join("runs"), &cell.name())?
                 }

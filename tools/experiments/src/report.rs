@@ -202,7 +202,7 @@ fn groups(outcomes: &[Outcome]) -> BTreeMap<(i64, FlowSetting, String), Vec<&Out
 
 pub fn markdown_table(outcomes: &[Outcome], mode: &str) -> String {
     let mut out = format!(
-        "Mode: {mode}. Mean ± sd over trials; \"failed\" = error above {} mm for more than {} s or not at the end.\n\n\
+        "Mode: {mode}. Mean ± sd over trials; \"failed\" = error above {} mm for more than {} s, or never within it of the end after the reference got there.\n\n\
          | condition | controller | trials | completed | RMSE mm | P95 mm | Max mm | wall contacts | peak A | energy J | paper RMSE / P95 / Max |\n\
          |---|---|---|---|---|---|---|---|---|---|---|\n",
         crate::FAIL_ERROR_M * 1e3,
