@@ -9,41 +9,24 @@
 //! the localization noise model (fast mode: 20 µm Gaussian; process: the UNet on rendered,
 //! noisy, blurred frames).
 
-use std::path::Path;
-
-use millinav_experiments::{
-    cell_scenario, fast_run, metrics, process_run, reference_of, Cell, FlowSetting, Metrics,
-};
-use millinav_kit::scenario::Scenario;
+use millinav_experiments::{fast_run, process_run, Cell, FlowSetting, Metrics};
 
 const RMSE_TOL_MM: f64 = 0.05;
 const P95_TOL_MM: f64 = 0.10;
 const MAX_TOL_MM: f64 = 0.25;
 
 fn compare(cell: Cell) {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let mut base = Scenario::load(&root.join("scenarios/paper.toml")).expect("paper scenario");
-    base.run.duration_s = 20.0;
-    let text = cell_scenario(&base, &cell, &root).expect("cell scenario");
+    let paper = millinav_tests::PaperCell::new(&cell, |base| base.run.duration_s = 20.0);
     // One directory per cell: the tests run in parallel and each removes its own at the end.
     let work = std::env::temp_dir().join(format!(
         "millinav-fvp-{}-{}",
         std::process::id(),
         cell.name()
     ));
-    let scenario = Scenario::parse(&text, &work.join("cell.toml")).expect("parse cell");
-    let reference = reference_of(&scenario).expect("reference");
-    let resistance = fieldmaps::rig::CoilLimits::default().coil_resistance_ohm;
-
-    let fast = metrics(
-        &fast_run(&scenario).expect("fast run"),
-        &reference,
-        resistance,
-    );
-    let process = metrics(
-        &process_run(&text, &millinav_tests::bin_dir(), &work, &cell.name()).expect("process run"),
-        &reference,
-        resistance,
+    let fast = paper.metrics(&fast_run(&paper.scenario).expect("fast run"));
+    let process = paper.metrics(
+        &process_run(&paper.text, &millinav_tests::bin_dir(), &work, &cell.name())
+            .expect("process run"),
     );
     let row = |mode: &str, m: &Metrics| {
         println!(

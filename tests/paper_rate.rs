@@ -4,34 +4,22 @@
 //! paper reports one, and the paper-gain baselines it is compared with do worse. One seed per
 //! cell (the matrix in the README runs three).
 
-use std::path::Path;
-
 use millinav_experiments::report::paper_smc_dob_rmse_mm;
-use millinav_experiments::{cell_scenario, fast_run, metrics, reference_of, Cell, FlowSetting};
-use millinav_kit::scenario::Scenario;
+use millinav_experiments::{fast_run, Cell, FlowSetting};
+use millinav_tests::PaperCell;
 
 /// RMSE bound where the paper reports none (4.3 cP at 10 cm/s): the 20 cP bound of that flow.
 const UNREPORTED_BOUND_MM: f64 = 2.0;
 
 fn run(viscosity_cp: f64, flow: FlowSetting, controller: &str) -> millinav_experiments::Metrics {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let mut base = Scenario::load(&root.join("scenarios/paper.toml")).expect("paper scenario");
-    base.run.frame_period_ms = 100.0;
     let cell = Cell {
         viscosity_cp,
         flow,
         controller: controller.into(),
         seed: 1,
     };
-    let text = cell_scenario(&base, &cell, &root).expect("cell scenario");
-    let scenario = Scenario::parse(&text, &root.join("scenarios/cell.toml")).expect("parse");
-    let reference = reference_of(&scenario).expect("reference");
-    let resistance = fieldmaps::rig::CoilLimits::default().coil_resistance_ohm;
-    let m = metrics(
-        &fast_run(&scenario).expect("fast run"),
-        &reference,
-        resistance,
-    );
+    let paper = PaperCell::new(&cell, |base| base.run.frame_period_ms = 100.0);
+    let m = paper.metrics(&fast_run(&paper.scenario).expect("fast run"));
     println!(
         "{:<28} RMSE {:.2} P95 {:.2} Max {:.2} mm completed {}",
         cell.name(),

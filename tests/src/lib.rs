@@ -392,3 +392,38 @@ pub fn scenario_text(
         points.join(", ")
     )
 }
+
+/// One cell of the paper's matrix built from `scenarios/paper.toml` (after `adjust`, e.g. a
+/// shorter run or another frame period), ready to run in either mode and to score.
+pub struct PaperCell {
+    /// The cell's scenario text (what `process_run` takes).
+    pub text: String,
+    pub scenario: Scenario,
+    reference: Reference,
+}
+
+impl PaperCell {
+    pub fn new(cell: &millinav_experiments::Cell, adjust: impl FnOnce(&mut Scenario)) -> Self {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let mut base = Scenario::load(&root.join("scenarios/paper.toml")).expect("paper scenario");
+        adjust(&mut base);
+        let text = millinav_experiments::cell_scenario(&base, cell, &root).expect("cell scenario");
+        let scenario =
+            Scenario::parse(&text, &root.join("scenarios/cell.toml")).expect("parse cell");
+        let reference = millinav_experiments::reference_of(&scenario).expect("reference");
+        Self {
+            text,
+            scenario,
+            reference,
+        }
+    }
+
+    /// The matrix's metrics of a trace of this cell.
+    pub fn metrics(
+        &self,
+        trace: &[millinav_experiments::TraceRow],
+    ) -> millinav_experiments::Metrics {
+        let resistance = fieldmaps::rig::CoilLimits::default().coil_resistance_ohm;
+        millinav_experiments::metrics(trace, &self.reference, resistance)
+    }
+}
