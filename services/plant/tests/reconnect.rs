@@ -3,16 +3,16 @@
 
 use std::time::{Duration, Instant};
 
+use fieldmaps::coils::COIL_COUNT;
 use millinav_coilbus::link::SerialLink;
-use millinav_coilbus::protocol::{amps_to_ma, Message};
+use millinav_coilbus::protocol::{amps_to_ma, CoilValues, Message};
 use millinav_plant::teensy::EmulatedTeensy;
-use shm_schemas::COIL_COUNT;
 
 fn command(frame_seq: u64, amps: f64) -> Message {
     Message::SetCurrents {
         frame_seq,
         flags: 0,
-        currents_ma: [amps_to_ma(amps); COIL_COUNT],
+        currents_ma: CoilValues::new(&[amps_to_ma(amps); COIL_COUNT]).unwrap(),
     }
 }
 
@@ -25,7 +25,7 @@ fn deliver(link: &mut SerialLink, teensy: &EmulatedTeensy, frame_seq: u64, amps:
         if link.send(&command(frame_seq, amps)) {
             let (out, in_time) = teensy.wait_for_frame(frame_seq, Duration::from_millis(50));
             if in_time {
-                assert_eq!(out.last_command_currents_a, [amps; COIL_COUNT]);
+                assert_eq!(out.last_command_currents(), [amps; COIL_COUNT]);
                 return true;
             }
         }
@@ -41,7 +41,8 @@ fn serial_link_reconnects_when_the_port_comes_back() {
     let link_path = dir.join("teensy.pty");
     let watchdog = Duration::from_millis(250);
 
-    let first = EmulatedTeensy::start(&link_path, &dir.join("events1.csv"), watchdog).unwrap();
+    let first =
+        EmulatedTeensy::start(&link_path, &dir.join("events1.csv"), watchdog, COIL_COUNT).unwrap();
     let mut link = SerialLink::new(link_path.clone(), 115_200);
     assert!(
         deliver(&mut link, &first, 1, 1.5),
@@ -68,7 +69,8 @@ fn serial_link_reconnects_when_the_port_comes_back() {
     assert!(!link.is_open(), "opened a port that does not exist");
 
     // A new board at the same path: the link reopens on its own and commands flow again.
-    let second = EmulatedTeensy::start(&link_path, &dir.join("events2.csv"), watchdog).unwrap();
+    let second =
+        EmulatedTeensy::start(&link_path, &dir.join("events2.csv"), watchdog, COIL_COUNT).unwrap();
     assert!(deliver(&mut link, &second, 300, -2.0), "no reconnect");
     assert!(link.is_open());
     assert_eq!(link.reconnects, 1);
