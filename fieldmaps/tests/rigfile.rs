@@ -79,7 +79,12 @@ fn paper_rig_file_builds_the_paper_coils() {
     assert_eq!(rig.allocation_coils, DEFAULT_PLANAR_COILS.to_vec());
     assert_eq!(rig.coil_limits(), CoilLimits::default());
     for c in &rig.coils {
-        assert_eq!((c.resistance_ohm, c.max_current_a), (10.0, 6.0), "{}", c.name);
+        assert_eq!(
+            (c.resistance_ohm, c.max_current_a),
+            (10.0, 6.0),
+            "{}",
+            c.name
+        );
     }
 }
 
@@ -227,7 +232,8 @@ struct TempDir(PathBuf);
 
 impl TempDir {
     fn new(tag: &str) -> Self {
-        let dir = std::env::temp_dir().join(format!("millinav-rigfile-{}-{tag}", std::process::id()));
+        let dir =
+            std::env::temp_dir().join(format!("millinav-rigfile-{}-{tag}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         Self(dir)
     }
@@ -293,13 +299,27 @@ fn portable_copy_loads_from_a_temp_dir() {
 fn unknown_keys_are_rejected_with_their_path() {
     let base = portable_paper_text();
     let t = replace_once(&base, "[camera]\n", "[camera]\ncolour = \"red\"\n");
-    expect_err("unknown-camera", &t, "camera.colour", "unknown field `colour`");
+    expect_err(
+        "unknown-camera",
+        &t,
+        "camera.colour",
+        "unknown field `colour`",
+    );
     // In the third coil's table.
     let third = base.match_indices("[[coils]]\n").nth(2).unwrap().0 + "[[coils]]\n".len();
     let t = format!("{}wire_gauge = 18\n{}", &base[..third], &base[third..]);
     expect_err("unknown-coil", &t, "coils[2].wire_gauge", "unknown field");
-    let t = replace_once(&base, "length_mm = 20.0 ", "length_mm = 20.0\ndepth_mm = 1 ");
-    expect_err("unknown-winding", &t, "coils[0].winding.depth_mm", "unknown field");
+    let t = replace_once(
+        &base,
+        "length_mm = 20.0 ",
+        "length_mm = 20.0\ndepth_mm = 1 ",
+    );
+    expect_err(
+        "unknown-winding",
+        &t,
+        "coils[0].winding.depth_mm",
+        "unknown field",
+    );
     let t = format!("colour = 1\n{base}");
     expect_err("unknown-top", &t, "colour", "unknown field");
 }
@@ -342,9 +362,17 @@ fn bad_coil_values() {
     let base = portable_paper_text();
     let t = replace_once(&base, "turns = 214.578", "turns = 0.0");
     expect_err("zero-turns", &t, "coils[0].turns", "must be > 0");
-    let t = replace_once(&base, "center_mm = [0.0, 70.0, 0.0]", "center_mm = [0.0, nan, 0.0]");
+    let t = replace_once(
+        &base,
+        "center_mm = [0.0, 70.0, 0.0]",
+        "center_mm = [0.0, nan, 0.0]",
+    );
     expect_err("nan-centre", &t, "coils[0].center_mm", "must be finite");
-    let t = replace_once(&base, "center_mm = [0.0, -70.0, 0.0]", "center_mm = [inf, -70.0, 0.0]");
+    let t = replace_once(
+        &base,
+        "center_mm = [0.0, -70.0, 0.0]",
+        "center_mm = [inf, -70.0, 0.0]",
+    );
     expect_err("inf-centre", &t, "coils[6].center_mm", "must be finite");
     let t = replace_once(&base, "axis = [0.0, -1.0, 0.0]", "axis = [0.0, 0.0, 0.0]");
     expect_err("zero-axis", &t, "coils[0].axis", "non-zero");
@@ -352,20 +380,38 @@ fn bad_coil_values() {
     expect_err("zero-current", &t, "coils[0].max_current_a", "> 0");
     let t = replace_once(&base, "resistance_ohm = 10.0", "resistance_ohm = -10.0");
     expect_err("negative-resistance", &t, "coils[0].resistance_ohm", "> 0");
-    let t = replace_once(&base, "max_total_power_w = 2160.0", "max_total_power_w = 0.0");
+    let t = replace_once(
+        &base,
+        "max_total_power_w = 2160.0",
+        "max_total_power_w = 0.0",
+    );
     expect_err("zero-power", &t, "electromagnet.max_total_power_w", "> 0");
     let t = replace_once(&base, "outer_radius_mm = 24.0", "outer_radius_mm = 5.0");
-    expect_err("inverted-winding", &t, "coils[0].winding.outer_radius_mm", "must exceed");
+    expect_err(
+        "inverted-winding",
+        &t,
+        "coils[0].winding.outer_radius_mm",
+        "must exceed",
+    );
     let t = replace_once(&base, "name = \"N_mid\"", "name = \"N_small\"");
     expect_err("duplicate-name", &t, "coils[1].name", "duplicate");
     let t = replace_once(&base, "turns = 214.578 ", "#");
-    expect_err("no-turns", &t, "coils[0].turns", "required by the analytic field model");
+    expect_err(
+        "no-turns",
+        &t,
+        "coils[0].turns",
+        "required by the analytic field model",
+    );
 }
 
 #[test]
 fn bad_electromagnet_values() {
     let base = portable_paper_text();
-    let t = replace_once(&base, "[\"N_small\", \"N_large\"", "[\"N_small\", \"X_huge\"");
+    let t = replace_once(
+        &base,
+        "[\"N_small\", \"N_large\"",
+        "[\"N_small\", \"X_huge\"",
+    );
     expect_err(
         "allocation",
         &t,
@@ -373,13 +419,23 @@ fn bad_electromagnet_values() {
         "no coil named \"X_huge\"",
     );
     let t = replace_once(&base, "field_model = \"analytic\"", "field_model = \"fem\"");
-    expect_err("model", &t, "electromagnet.field_model", "\"analytic\" or \"maps:<dir>\"");
+    expect_err(
+        "model",
+        &t,
+        "electromagnet.field_model",
+        "\"analytic\" or \"maps:<dir>\"",
+    );
     let t = replace_once(
         &base,
         "field_model = \"analytic\"",
         "field_model = \"maps:no/such/dir\"",
     );
-    expect_err("missing-maps", &t, "electromagnet.field_model", "cannot read");
+    expect_err(
+        "missing-maps",
+        &t,
+        "electromagnet.field_model",
+        "cannot read",
+    );
     // Maps whose coils are listed in another order than the rig's.
     let coils_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("coils");
     let t = replace_once(
@@ -390,7 +446,12 @@ fn bad_electromagnet_values() {
     let t = replace_once(&t, "name = \"N_small\"", "name = \"Tmp\"");
     let t = replace_once(&t, "name = \"N_mid\"", "name = \"N_small\"");
     let t = replace_once(&t, "name = \"Tmp\"", "name = \"N_mid\"");
-    expect_err("maps-order", &t, "coils[0].name", "\"N_mid\", but the field maps");
+    expect_err(
+        "maps-order",
+        &t,
+        "coils[0].name",
+        "\"N_mid\", but the field maps",
+    );
 }
 
 fn write_png(path: &Path, w: u32, h: u32, value: u8) {
@@ -419,17 +480,36 @@ fn bad_masks() {
     let small = dir.0.join("small.png");
     write_png(&small, 64, 64, 255);
     let t = replace_once(&base, &mask_line, &format!("mask = {small:?}"));
-    expect_err("small-mask", &t, "phantom.mask", "is 64x64 px, expected 1020x1020 px");
+    expect_err(
+        "small-mask",
+        &t,
+        "phantom.mask",
+        "is 64x64 px, expected 1020x1020 px",
+    );
     // A mask scale that does not tile the field of view.
     let t = replace_once(
         &base,
         "mask_mm_per_px = 0.09019607843137255",
         "mask_mm_per_px = 0.07",
     );
-    expect_err("mask-scale", &t, "phantom.mask_mm_per_px", "not a whole number");
+    expect_err(
+        "mask-scale",
+        &t,
+        "phantom.mask_mm_per_px",
+        "not a whole number",
+    );
     // Shifted against the camera.
-    let t = replace_once(&base, "mask_origin_mm = [-46.0, 46.0]", "mask_origin_mm = [-40.0, 46.0]");
-    expect_err("mask-origin", &t, "phantom.mask_origin_mm", "camera.origin_mm");
+    let t = replace_once(
+        &base,
+        "mask_origin_mm = [-46.0, 46.0]",
+        "mask_origin_mm = [-40.0, 46.0]",
+    );
+    expect_err(
+        "mask-origin",
+        &t,
+        "phantom.mask_origin_mm",
+        "camera.origin_mm",
+    );
     // Coarser mask over the same field of view is fine: 0.184 mm/px → 510 px.
     let coarse = dir.0.join("coarse.png");
     write_png(&coarse, 510, 510, 255);
@@ -462,7 +542,12 @@ fn bad_ports_zones_and_flow() {
     let t = replace_once(&base, "diameter_mm = 3.0", "diameter_mm = 0.0");
     expect_err("port-diameter", &t, "phantom.inlets[0].diameter_mm", "> 0");
     let t = replace_once(&base, "direction = [1.0, 0.0]", "direction = [0.0, 0.0]");
-    expect_err("port-direction", &t, "phantom.inlets[1].direction", "non-zero");
+    expect_err(
+        "port-direction",
+        &t,
+        "phantom.inlets[1].direction",
+        "non-zero",
+    );
 
     // A zone in the agarose corner: no canal pixel inside.
     let wall = "polygon_mm = [[35.0, -45.0], [45.0, -45.0], [45.0, -35.0], [35.0, -35.0]]";
@@ -471,21 +556,36 @@ fn bad_ports_zones_and_flow() {
         "polygon_mm = [[-46.0, -5.0], [20.0, -5.0], [20.0, 10.0], [-46.0, 10.0]]",
         wall,
     );
-    expect_err("zone-in-wall", &t, "phantom.zones[1].polygon_mm", "covers no canal pixel");
+    expect_err(
+        "zone-in-wall",
+        &t,
+        "phantom.zones[1].polygon_mm",
+        "covers no canal pixel",
+    );
     // A zone reaching far outside the view.
-    let t = replace_once(&base, "[-46.0, -10.0], [20.0, -10.0]", "[-46.0, -10.0], [200.0, -10.0]");
+    let t = replace_once(
+        &base,
+        "[-46.0, -10.0], [20.0, -10.0]",
+        "[-46.0, -10.0], [200.0, -10.0]",
+    );
     expect_err("zone-far", &t, "phantom.zones[0].polygon_mm", "vertex 1");
     let t = replace_once(&base, "kind = \"recirculation\"", "kind = \"vortex\"");
     expect_err("zone-kind", &t, "phantom.zones[1].kind", "unknown variant");
 
-    let t = replace_once(
-        &base,
-        "q250_mu4p3.flow.csv",
-        "no_such_condition.flow.csv",
+    let t = replace_once(&base, "q250_mu4p3.flow.csv", "no_such_condition.flow.csv");
+    expect_err(
+        "missing-flow",
+        &t,
+        "phantom.flow[3].map",
+        "cannot read flow map",
     );
-    expect_err("missing-flow", &t, "phantom.flow[3].map", "cannot read flow map");
     let t = replace_once(&base, "flow_ml_min = 180.0", "flow_ml_min = 200.0");
-    expect_err("flow-label", &t, "phantom.flow[0].flow_ml_min", "was made for");
+    expect_err(
+        "flow-label",
+        &t,
+        "phantom.flow[0].flow_ml_min",
+        "was made for",
+    );
 }
 
 #[test]
@@ -496,14 +596,27 @@ fn bad_robot_camera_and_header() {
     let t = replace_once(&base, "width_px = 1020", "width_px = 0");
     expect_err("camera-width", &t, "camera.width_px", "> 0");
     let t = replace_once(&base, "pixel_format = \"rgb8\"", "pixel_format = \"bayer\"");
-    expect_err("camera-format", &t, "camera.pixel_format", "unknown variant");
+    expect_err(
+        "camera-format",
+        &t,
+        "camera.pixel_format",
+        "unknown variant",
+    );
     let t = replace_once(&base, "version = 1", "version = 2");
     expect_err("version", &t, "version", "reads version 1");
     let t = replace_once(&base, "magnet_moment_am2 = 8.6e-4", "");
-    expect_err("robot-missing", &t, "robot", "missing field `magnet_moment_am2`");
+    expect_err(
+        "robot-missing",
+        &t,
+        "robot",
+        "missing field `magnet_moment_am2`",
+    );
 
     let missing = Path::new("/nonexistent/rig.toml");
     let err = Rig::load(missing).unwrap_err();
     assert!(matches!(err, RigFileError::Read { .. }), "{err}");
-    assert!(err.to_string().starts_with("/nonexistent/rig.toml: "), "{err}");
+    assert!(
+        err.to_string().starts_with("/nonexistent/rig.toml: "),
+        "{err}"
+    );
 }

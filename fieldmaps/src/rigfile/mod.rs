@@ -333,7 +333,7 @@ impl Rig {
         for z in &self.phantom.zones {
             let _ = writeln!(
                 s,
-                "  zone   {:<16} {} ({} vertices)",
+                "  zone   {:<18} {} ({} vertices)",
                 z.name,
                 z.kind.as_str(),
                 z.polygon_m.len()
@@ -353,7 +353,7 @@ impl Rig {
         let r = &self.robot;
         let _ = writeln!(
             s,
-            "robot: {:.2} x {:.2} mm capsule, |m| {} A·m², mass {} mg",
+            "robot: {:.2} x {:.2} mm capsule, |m| {:.3e} A·m², mass {} mg",
             r.length_m * 1e3,
             r.diameter_m * 1e3,
             r.magnet_moment_am2,
@@ -494,7 +494,12 @@ fn fmt_vec(v: &[f64]) -> String {
     format!("[{}]", parts.join(", "))
 }
 
-fn check_name(ctx: &Ctx, field: &str, name: &str, seen: &mut HashSet<String>) -> Result<(), RigFileError> {
+fn check_name(
+    ctx: &Ctx,
+    field: &str,
+    name: &str,
+    seen: &mut HashSet<String>,
+) -> Result<(), RigFileError> {
     if name.is_empty()
         || !name
             .chars()
@@ -685,7 +690,11 @@ fn build_field(
             let mut built = Vec::with_capacity(coils.len());
             for (i, c) in coils.iter().enumerate() {
                 let (Some(turns), Some(winding)) = (c.turns, c.winding.as_ref()) else {
-                    let missing = if c.turns.is_none() { "turns" } else { "winding" };
+                    let missing = if c.turns.is_none() {
+                        "turns"
+                    } else {
+                        "winding"
+                    };
                     return Err(ctx.err(
                         format!("coils[{i}].{missing}"),
                         "required by the analytic field model",
@@ -762,7 +771,11 @@ fn build_allocation(
 
 fn build_camera(ctx: &Ctx, c: &schema::CameraSection) -> Result<RigCamera, RigFileError> {
     if c.width_px == 0 || c.height_px == 0 {
-        let key = if c.width_px == 0 { "width_px" } else { "height_px" };
+        let key = if c.width_px == 0 {
+            "width_px"
+        } else {
+            "height_px"
+        };
         return Err(ctx.err(format!("camera.{key}"), "must be > 0"));
     }
     if u64::from(c.width_px) * u64::from(c.height_px) > ImageGeometry::MAX_PIXELS {
@@ -1062,8 +1075,7 @@ fn covers_canal(zone: &Zone, mask: &CanalMask) -> bool {
     let clamp_row = |v: f64| v.clamp(0.0, f64::from(g.height_px) - 1.0) as i64;
     for row in clamp_row(r0.floor())..=clamp_row(r1.ceil()) {
         for col in clamp_col(c0.floor())..=clamp_col(c1.ceil()) {
-            if mask.is_canal_px(col, row) && zone.contains(&g.px_to_world(col as f64, row as f64))
-            {
+            if mask.is_canal_px(col, row) && zone.contains(&g.px_to_world(col as f64, row as f64)) {
                 return true;
             }
         }

@@ -121,7 +121,14 @@ mod tests {
     #[test]
     fn concave_polygon() {
         // An L shape: the notch (1.5, 1.5) is outside.
-        let z = zone(&[(0.0, 0.0), (2.0, 0.0), (2.0, 1.0), (1.0, 1.0), (1.0, 2.0), (0.0, 2.0)]);
+        let z = zone(&[
+            (0.0, 0.0),
+            (2.0, 0.0),
+            (2.0, 1.0),
+            (1.0, 1.0),
+            (1.0, 2.0),
+            (0.0, 2.0),
+        ]);
         assert!(z.contains(&Vector2::new(0.5, 1.5)));
         assert!(z.contains(&Vector2::new(1.5, 0.5)));
         assert!(!z.contains(&Vector2::new(1.5, 1.5)));

@@ -264,7 +264,11 @@ controller = "pid"
         let s = Scenario::parse(GOOD, Path::new("/somewhere/x.toml")).unwrap();
         assert_eq!(s.run.rig, None);
         let paper = s.rig_path();
-        assert!(paper.ends_with("fieldmaps/rigs/paper.toml"), "{}", paper.display());
+        assert!(
+            paper.ends_with("fieldmaps/rigs/paper.toml"),
+            "{}",
+            paper.display()
+        );
         assert!(paper.is_file(), "{}", paper.display());
 
         let named = GOOD.replace(
@@ -275,11 +279,17 @@ controller = "pid"
         assert_eq!(s.rig_path(), paper);
 
         // Not in the repository: next to the scenario.
-        let own = GOOD.replace("duration_s = 5.0", "duration_s = 5.0\nrig = \"rigs/mine.toml\"");
+        let own = GOOD.replace(
+            "duration_s = 5.0",
+            "duration_s = 5.0\nrig = \"rigs/mine.toml\"",
+        );
         let s = Scenario::parse(&own, Path::new("/somewhere/x.toml")).unwrap();
         assert_eq!(s.rig_path(), Path::new("/somewhere/rigs/mine.toml"));
 
-        let absolute = GOOD.replace("duration_s = 5.0", "duration_s = 5.0\nrig = \"/labs/r.toml\"");
+        let absolute = GOOD.replace(
+            "duration_s = 5.0",
+            "duration_s = 5.0\nrig = \"/labs/r.toml\"",
+        );
         let s = Scenario::parse(&absolute, Path::new("x.toml")).unwrap();
         assert_eq!(s.rig_path(), Path::new("/labs/r.toml"));
     }

@@ -36,9 +36,10 @@ fn paper_rig_checks_out() {
 #[test]
 fn bad_rig_names_file_and_field() {
     let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fieldmaps/rigs/paper.toml");
-    let text = std::fs::read_to_string(&paper)
-        .unwrap()
-        .replacen("turns = 191.788", "turns = 0.0", 1);
+    let text =
+        std::fs::read_to_string(&paper)
+            .unwrap()
+            .replacen("turns = 191.788", "turns = 0.0", 1);
     // Next to paper.toml would let its relative paths resolve, but the tests must not write
     // into the source tree; the coil error comes before any data file is opened.
     let dir = std::env::temp_dir().join(format!("millinav-rig-check-{}", std::process::id()));
