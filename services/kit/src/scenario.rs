@@ -42,7 +42,7 @@ pub struct RunSection {
     #[serde(default = "default_frame_period_ms")]
     pub frame_period_ms: f64,
     /// Rig file the run uses (see [`Scenario::rig_path`]); none means the paper rig.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rig: Option<PathBuf>,
 }
 
