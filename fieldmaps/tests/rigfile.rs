@@ -209,6 +209,19 @@ fn paper_zones_reproduce_the_flow_service_bands() {
 }
 
 #[test]
+fn every_paper_value_says_where_it_comes_from() {
+    let text = paper_text();
+    let mut previous = "";
+    for (n, line) in text.lines().enumerate() {
+        let code = line.split('#').next().unwrap().trim();
+        let is_value = code.contains('=') && !code.starts_with('[');
+        let commented = line.contains('#') || previous.trim_start().starts_with('#');
+        assert!(!is_value || commented, "paper.toml line {}: {line}", n + 1);
+        previous = line;
+    }
+}
+
+#[test]
 fn summary_names_the_parts() {
     let s = paper().summary();
     for needle in [
