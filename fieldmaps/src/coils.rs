@@ -70,7 +70,7 @@ impl Coil {
         let (ri, ro) = (winding.inner_radius_m, winding.outer_radius_m);
         let mut loops = Vec::with_capacity(nr * na);
         for a in 0..na {
-            // Positive offset = toward the workspace (along the axis).
+            // Positive offset = along the axis (toward the workspace in the paper rig).
             let offset = winding.length_m * ((a as f64 + 0.5) / na as f64 - 0.5);
             for r in 0..nr {
                 loops.push((ri + (ro - ri) * (r as f64 + 0.5) / nr as f64, offset));
