@@ -107,6 +107,8 @@ pub struct CoilBus {
     deadline: Duration,
     stale: StaleFilter,
     last_accepted: Option<Instant>,
+    /// Whether this process has written its start-up safe zero to the board.
+    start_zero_written: bool,
     pub status: CoilStatus,
 }
 
@@ -138,6 +140,7 @@ impl CoilBus {
             deadline,
             stale: StaleFilter::default(),
             last_accepted: None,
+            start_zero_written: false,
             status: CoilStatus {
                 frame_seq: NO_FRAME,
                 active_coils: coil_count as u32,
@@ -243,6 +246,18 @@ impl CoilBus {
             );
         }
         Some(self.safe_zero())
+    }
+
+    /// A (re)started coilbus does not know what the board drives (its predecessor may have died
+    /// mid-command), so its first frame is a safe zero and commands apply from the next cycle
+    /// on. Returns that zero until `start_zero_sent` confirms it reached the board.
+    pub fn start_zero(&mut self) -> Option<Output> {
+        (!self.start_zero_written).then(|| self.safe_zero())
+    }
+
+    /// Records that the start-up zero was written to the board.
+    pub fn start_zero_sent(&mut self) {
+        self.start_zero_written = true;
     }
 
     pub fn safe_zero(&mut self) -> Output {
@@ -358,7 +373,12 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         let _ = command_event;
         // Only the newest fresh command matters: older ones in the queue are superseded.
         let mut sent = None;
-        if let Some((cmd, out)) = received
+        if let Some(zero) = bus.start_zero() {
+            if write_output(&mut link, &mut bus, &zero) {
+                bus.start_zero_sent();
+                sent = Some(zero);
+            }
+        } else if let Some((cmd, out)) = received
             .iter()
             .rev()
             .find_map(|cmd| bus.on_command(cmd).map(|out| (cmd, out)))
@@ -467,6 +487,21 @@ mod tests {
         .unwrap();
         assert_eq!(out.currents(), [1.0; COILS]);
         assert_eq!(bus.status.watchdog(), Ok(false));
+    }
+
+    #[test]
+    fn a_started_coilbus_zeroes_the_board_before_any_command() {
+        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100));
+        let zero = bus
+            .start_zero()
+            .expect("a fresh coilbus starts with a zero");
+        assert_eq!(zero.currents_a, [0.0; COIL_COUNT]);
+        assert_eq!(zero.flags, FLAG_SAFE_ZERO);
+        // Not written yet (link closed): still owed.
+        assert!(bus.start_zero().is_some());
+        bus.start_zero_sent();
+        assert!(bus.start_zero().is_none());
+        assert!(apply(&mut bus, &command(1, 0, 1.0), Instant::now()).is_some());
     }
 
     #[test]
