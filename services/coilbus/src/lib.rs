@@ -75,6 +75,8 @@ pub struct CoilBus {
     deadline: Duration,
     stale: StaleFilter,
     last_accepted: Option<Instant>,
+    /// Whether this process has written its start-up safe zero to the board.
+    start_zero_written: bool,
     pub status: CoilStatus,
 }
 
@@ -93,6 +95,7 @@ impl CoilBus {
             deadline,
             stale: StaleFilter::default(),
             last_accepted: None,
+            start_zero_written: false,
             status: CoilStatus {
                 frame_seq: NO_FRAME,
                 watchdog_tripped: true,
@@ -152,6 +155,18 @@ impl CoilBus {
             );
         }
         Some(self.safe_zero())
+    }
+
+    /// A (re)started coilbus does not know what the board drives (its predecessor may have died
+    /// mid-command), so its first frame is a safe zero and commands apply from the next cycle
+    /// on. Returns that zero until `start_zero_sent` confirms it reached the board.
+    pub fn start_zero(&mut self) -> Option<Output> {
+        (!self.start_zero_written).then(|| self.safe_zero())
+    }
+
+    /// Records that the start-up zero was written to the board.
+    pub fn start_zero_sent(&mut self) {
+        self.start_zero_written = true;
     }
 
     pub fn safe_zero(&mut self) -> Output {
@@ -303,15 +318,21 @@ fn service_link(
     log_link_events(link_log, link.take_events());
 }
 
-/// Writes the newest fresh command of `received` (older ones in the queue are superseded), or
-/// the safe zero when the command deadline has passed; returns what went out.
+/// Writes the start-up safe zero until it went out once, then the newest fresh command of
+/// `received` (older ones in the queue are superseded), or the safe zero when the command
+/// deadline has passed; returns what went out.
 fn apply_commands(
     link: &mut SerialLink,
     bus: &mut CoilBus,
     received: &[CoilCommand],
     now: Instant,
 ) -> Option<Output> {
-    if let Some((cmd, out)) = received
+    if let Some(zero) = bus.start_zero() {
+        if write_output(link, bus, &zero) {
+            bus.start_zero_sent();
+            return Some(zero);
+        }
+    } else if let Some((cmd, out)) = received
         .iter()
         .rev()
         .find_map(|cmd| bus.on_command(cmd).map(|out| (cmd, out)))
@@ -368,6 +389,21 @@ mod tests {
         .unwrap();
         assert_eq!(out.currents_a, [1.0; COIL_COUNT]);
         assert!(!bus.status.watchdog_tripped);
+    }
+
+    #[test]
+    fn a_started_coilbus_zeroes_the_board_before_any_command() {
+        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100));
+        let zero = bus
+            .start_zero()
+            .expect("a fresh coilbus starts with a zero");
+        assert_eq!(zero.currents_a, [0.0; COIL_COUNT]);
+        assert_eq!(zero.flags, FLAG_SAFE_ZERO);
+        // Not written yet (link closed): still owed.
+        assert!(bus.start_zero().is_some());
+        bus.start_zero_sent();
+        assert!(bus.start_zero().is_none());
+        assert!(apply(&mut bus, &command(1, 0, 1.0), Instant::now()).is_some());
     }
 
     #[test]

@@ -152,7 +152,10 @@ fn check(controller: &str, rmse_bound_mm: f64, max_bound_mm: f64) {
         assert_eq!(s.rejected, 0, "{controller} {path}: poses rejected");
         assert!(s.rmse_mm < rmse_bound_mm, "{controller} {path}: {s:?}");
         assert!(s.max_mm < max_bound_mm, "{controller} {path}: {s:?}");
-        assert!(s.final_mm < max_bound_mm, "{controller} {path}: {s:?}");
+        // Settled: 2 s after the reference stops, the robot sits at the end within the
+        // controller's RMSE bound (a final error under the max bound is implied by the line
+        // above and checks nothing).
+        assert!(s.final_mm < rmse_bound_mm, "{controller} {path}: {s:?}");
     }
 }
 

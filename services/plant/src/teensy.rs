@@ -5,9 +5,12 @@
 //! observe exactly when currents reached zero.
 //!
 //! It can also be told to suffer a link fault (`LinkFault`): a pulled USB cable (the device node
-//! vanishes, the unpowered board drives nothing) or a firmware stall (nothing read or sent; the
-//! board's hardware watchdog resets it, zeroing its outputs). The plant maps SIGUSR1/SIGUSR2 to
-//! these so fault-injection tests can hit the link like any other service.
+//! vanishes; the board stays powered from its own supply and keeps driving its last currents
+//! until its watchdog zeroes them) or a firmware stall (nothing read or sent; the board's
+//! hardware watchdog resets it, zeroing its outputs). Every zeroing the board does on its own is
+//! logged with its time (`watchdog_zero`, `hw_watchdog_reset`), so a test measures time to safe
+//! state at the board's zero. The plant maps SIGUSR1/SIGUSR2 to these so fault-injection tests
+//! can hit the link like any other service.
 
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
@@ -31,8 +34,10 @@ const REPLUG_RETRY: Duration = Duration::from_millis(100);
 /// A fault of the serial link, injected on purpose.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LinkFault {
-    /// USB cable pulled for this long: the device node disappears and the unpowered board
-    /// drives zero current; then it is plugged back in under the same link path.
+    /// USB cable pulled for this long: the device node disappears; the board keeps running on
+    /// its own supply (the worst case: a board powered from USB alone would go dark at once),
+    /// holds its last currents and zeroes them when its watchdog expires; then it is plugged
+    /// back in under the same link path.
     Unplug(Duration),
     /// Firmware stalls for this long: nothing is read, applied or sent. After the watchdog
     /// period the hardware watchdog resets the board (outputs zero); it boots with an empty
@@ -93,31 +98,48 @@ impl EmulatedTeensy {
         let thread_link = link_path.to_owned();
         let thread = std::thread::Builder::new()
             .name("teensy".into())
-            .spawn(move || loop {
-                let unplugged_for =
-                    match serve(&mut pty.master, &thread_shared, &mut events, watchdog) {
+            .spawn(move || {
+                // When the last frame arrived; the board's watchdog runs from it, plugged in or not.
+                let mut last_rx: Option<Instant> = None;
+                loop {
+                    let unplugged_for = match serve(
+                        &mut pty.master,
+                        &thread_shared,
+                        &mut events,
+                        watchdog,
+                        &mut last_rx,
+                    ) {
                         Served::Stopped => return,
                         Served::Unplugged(duration) => duration,
                     };
-                drop(pty);
-                let _ = std::fs::remove_file(&thread_link);
-                power_off(&thread_shared, &mut events, "unplugged");
-                tracing::warn!("emulated Teensy unplugged for {unplugged_for:?}");
-                if !sleep_unless_stopped(&thread_shared, unplugged_for) {
-                    return;
-                }
-                pty = loop {
-                    match Pty::plug_in(&thread_link) {
-                        Ok(pty) => break pty,
-                        Err(e) => {
-                            tracing::error!("emulated Teensy cannot re-create its pty: {e:#}");
-                            if !sleep_unless_stopped(&thread_shared, REPLUG_RETRY) {
-                                return;
+                    drop(pty);
+                    let _ = std::fs::remove_file(&thread_link);
+                    let held = lock(&thread_shared).currents_a;
+                    log_event(&mut events, NO_FRAME, 0, &held, "unplugged");
+                    tracing::warn!("emulated Teensy unplugged for {unplugged_for:?}");
+                    if !run_unplugged(
+                        &thread_shared,
+                        &mut events,
+                        watchdog,
+                        last_rx,
+                        unplugged_for,
+                    ) {
+                        return;
+                    }
+                    pty = loop {
+                        match Pty::plug_in(&thread_link) {
+                            Ok(pty) => break pty,
+                            Err(e) => {
+                                tracing::error!("emulated Teensy cannot re-create its pty: {e:#}");
+                                if !sleep_unless_stopped(&thread_shared, REPLUG_RETRY) {
+                                    return;
+                                }
                             }
                         }
-                    }
-                };
-                log_event(&mut events, NO_FRAME, 0, &[0.0], "replugged");
+                    };
+                    let outputs = lock(&thread_shared).currents_a;
+                    log_event(&mut events, NO_FRAME, 0, &outputs, "replugged");
+                }
             })?;
         Ok(Self {
             shared,
@@ -215,6 +237,47 @@ fn power_off(shared: &Shared, events: &mut std::fs::File, event: &str) {
     log_event(events, NO_FRAME, 0, &[0.0], event);
 }
 
+/// The board's own watchdog: once no frame came for `watchdog` it zeroes the outputs and logs
+/// `watchdog_zero` (once per trip).
+fn check_watchdog(
+    shared: &Shared,
+    events: &mut std::fs::File,
+    last_rx: Option<Instant>,
+    now: Instant,
+    watchdog: Duration,
+) {
+    let mut out = lock(shared);
+    let expired = last_rx.is_none_or(|t| now.duration_since(t) > watchdog);
+    if expired && !out.watchdog_tripped {
+        out.watchdog_tripped = true;
+        out.currents_a = [0.0; COIL_COUNT];
+        log_event(events, NO_FRAME, 0, &[0.0], "watchdog_zero");
+        tracing::warn!("emulated Teensy watchdog: no frame for {watchdog:?}, PWM zeroed");
+    }
+}
+
+/// Cable out for `duration`: nothing arrives, the firmware keeps running and its watchdog
+/// zeroes the held currents. False when the board was stopped meanwhile.
+fn run_unplugged(
+    shared: &Shared,
+    events: &mut std::fs::File,
+    watchdog: Duration,
+    last_rx: Option<Instant>,
+    duration: Duration,
+) -> bool {
+    let until = Instant::now() + duration;
+    loop {
+        let now = Instant::now();
+        check_watchdog(shared, events, last_rx, now, watchdog);
+        if now >= until {
+            return true;
+        }
+        if !sleep_unless_stopped(shared, Duration::from_millis(5).min(until - now)) {
+            return false;
+        }
+    }
+}
+
 /// Sleeps `duration` in short steps; false when the board was stopped meanwhile.
 fn sleep_unless_stopped(shared: &Shared, duration: Duration) -> bool {
     let until = Instant::now() + duration;
@@ -283,10 +346,10 @@ fn serve(
     shared: &Shared,
     events: &mut std::fs::File,
     watchdog: Duration,
+    last_rx: &mut Option<Instant>,
 ) -> Served {
     let mut decoder = Decoder::new();
     let mut buf = [0u8; 1024];
-    let mut last_rx: Option<Instant> = None;
     let mut last_telemetry = Instant::now();
     let mut tx_seq = 0u32;
     while !shared.stop.load(Ordering::Relaxed) {
@@ -303,7 +366,7 @@ fn serve(
                 }
                 // A reset board starts from scratch.
                 decoder = Decoder::new();
-                last_rx = None;
+                *last_rx = None;
                 continue;
             }
             None => {}
@@ -327,7 +390,7 @@ fn serve(
             else {
                 continue;
             };
-            last_rx = Some(now);
+            *last_rx = Some(now);
             let mut clamped = false;
             let currents = currents_ma.map(|ma| {
                 let a = ma_to_amps(ma);
@@ -366,17 +429,8 @@ fn serve(
             });
             let _ = port.write_all(&ack);
         }
-        {
-            let mut out = lock(shared);
-            out.rx_errors = decoder.counters.errors();
-            let expired = last_rx.is_none_or(|t| now.duration_since(t) > watchdog);
-            if expired && !out.watchdog_tripped {
-                out.watchdog_tripped = true;
-                out.currents_a = [0.0; COIL_COUNT];
-                log_event(events, NO_FRAME, 0, &[0.0], "watchdog_zero");
-                tracing::warn!("emulated Teensy watchdog: no frame for {watchdog:?}, PWM zeroed");
-            }
-        }
+        lock(shared).rx_errors = decoder.counters.errors();
+        check_watchdog(shared, events, *last_rx, now, watchdog);
         if now.duration_since(last_telemetry) >= TELEMETRY_PERIOD {
             last_telemetry = now;
             let out = lock(shared).clone();

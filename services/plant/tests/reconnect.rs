@@ -5,7 +5,7 @@ use std::time::{Duration, Instant};
 
 use millinav_coilbus::link::SerialLink;
 use millinav_coilbus::protocol::{amps_to_ma, Message};
-use millinav_plant::teensy::EmulatedTeensy;
+use millinav_plant::teensy::{EmulatedTeensy, LinkFault};
 use shm_schemas::COIL_COUNT;
 
 fn command(frame_seq: u64, amps: f64) -> Message {
@@ -73,5 +73,67 @@ fn serial_link_reconnects_when_the_port_comes_back() {
     assert!(link.is_open());
     assert_eq!(link.reconnects, 1);
     drop(second);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Rows of the board's event log: (monotonic_ns, max |current| A, event).
+fn board_events(path: &std::path::Path) -> Vec<(u64, f64, String)> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|line| {
+            let f: Vec<&str> = line.split(',').collect();
+            (
+                f[0].parse().unwrap(),
+                f[3].parse().unwrap(),
+                f[4].to_owned(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn an_unplugged_board_holds_its_currents_until_its_watchdog_zeroes_them() {
+    let dir = std::env::temp_dir().join(format!("millinav-unplug-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let link_path = dir.join("teensy.pty");
+    let events_path = dir.join("events.csv");
+    // Long enough that the checks below never race the watchdog on a loaded machine.
+    let watchdog = Duration::from_secs(2);
+    let board = EmulatedTeensy::start(&link_path, &events_path, watchdog).unwrap();
+    let mut link = SerialLink::new(link_path.clone(), 115_200);
+    assert!(deliver(&mut link, &board, 1, 1.5), "no first command");
+    board.inject(LinkFault::Unplug(Duration::from_secs(3)));
+    let until = Instant::now() + Duration::from_secs(1);
+    while link_path.exists() && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert!(!link_path.exists(), "the device node did not vanish");
+    // Cable out, board powered: it still drives the last command...
+    assert_eq!(board.outputs().currents_a, [1.5; COIL_COUNT]);
+    // ... until its watchdog zeroes it.
+    let until = Instant::now() + Duration::from_secs(5);
+    while board.outputs().currents_a != [0.0; COIL_COUNT] && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert_eq!(board.outputs().currents_a, [0.0; COIL_COUNT]);
+    let events = board_events(&events_path);
+    let last_frame = events
+        .iter()
+        .rfind(|e| e.2 == "command")
+        .expect("the command is logged");
+    let unplugged = events.iter().find(|e| e.2 == "unplugged").expect("unplug");
+    let zeroed = events
+        .iter()
+        .find(|e| e.2 == "watchdog_zero" && e.0 > unplugged.0)
+        .expect("the watchdog's zeroing is logged with its time");
+    assert_eq!(unplugged.1, 1.5, "the unplug event shows the held current");
+    assert!(
+        zeroed.0 - last_frame.0 >= watchdog.as_nanos() as u64,
+        "zeroed {} ms after the last frame, before the {watchdog:?} watchdog",
+        (zeroed.0 - last_frame.0) as f64 * 1e-6
+    );
+    drop(board);
     let _ = std::fs::remove_dir_all(&dir);
 }
