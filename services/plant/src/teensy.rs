@@ -19,6 +19,7 @@ use std::time::{Duration, Instant};
 use millinav_coilbus::protocol::{
     encode, ma_to_amps, AckStatus, Decoder, Message, Packet, FLAG_SAFE_ZERO,
 };
+use millinav_kit::runlog::{RunLogWriter, TeensyEventRow};
 use serialport::{SerialPort, TTYPort};
 use shm_schemas::{COIL_COUNT, NO_FRAME};
 
@@ -70,11 +71,8 @@ impl EmulatedTeensy {
     /// Creates the pty pair, links its slave to `link_path`, and starts serving.
     pub fn start(link_path: &Path, events_path: &Path, watchdog: Duration) -> anyhow::Result<Self> {
         let mut pty = Pty::plug_in(link_path)?;
-        let mut events = std::fs::File::create(events_path)?;
-        writeln!(
-            events,
-            "monotonic_ns,frame_seq,flags,max_abs_current_a,event"
-        )?;
+        // Append: a restarted plant continues the board's log.
+        let mut events = TeensyEvents::open_append(events_path)?;
 
         let shared = Arc::new(Shared {
             outputs: Mutex::new(TeensyOutputs {
@@ -206,7 +204,7 @@ impl Pty {
 }
 
 /// Zeroes the outputs as a board without power (or in reset) does, and logs why.
-fn power_off(shared: &Shared, events: &mut std::fs::File, event: &str) {
+fn power_off(shared: &Shared, events: &mut TeensyEvents, event: &str) {
     {
         let mut out = lock(shared);
         out.currents_a = [0.0; COIL_COUNT];
@@ -233,7 +231,7 @@ fn sleep_unless_stopped(shared: &Shared, duration: Duration) -> bool {
 fn stall(
     port: &mut TTYPort,
     shared: &Shared,
-    events: &mut std::fs::File,
+    events: &mut TeensyEvents,
     watchdog: Duration,
     duration: Duration,
 ) -> bool {
@@ -264,24 +262,26 @@ fn lock(shared: &Shared) -> std::sync::MutexGuard<'_, TeensyOutputs> {
     shared.outputs.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-fn log_event(events: &mut std::fs::File, frame_seq: u64, flags: u8, currents: &[f64], event: &str) {
-    let max = currents.iter().fold(0.0f64, |m, c| m.max(c.abs()));
-    let seq = if frame_seq == NO_FRAME {
-        -1
-    } else {
-        frame_seq as i64
+type TeensyEvents = RunLogWriter<TeensyEventRow>;
+
+/// Logs what the board received or did, flushed at once: tests watch this file during the run.
+fn log_event(events: &mut TeensyEvents, frame_seq: u64, flags: u8, currents: &[f64], event: &str) {
+    let row = TeensyEventRow {
+        monotonic_ns: millinav_kit::clock::monotonic_ns(),
+        frame_seq: (frame_seq != NO_FRAME).then_some(frame_seq),
+        flags,
+        max_abs_current_a: currents.iter().fold(0.0f64, |m, c| m.max(c.abs())),
+        event: event.to_owned(),
     };
-    let _ = writeln!(
-        events,
-        "{},{seq},{flags},{max:.6},{event}",
-        millinav_kit::clock::monotonic_ns()
-    );
+    if let Err(e) = events.append_now(&row) {
+        tracing::warn!("emulated Teensy cannot log its event: {e}");
+    }
 }
 
 fn serve(
     port: &mut TTYPort,
     shared: &Shared,
-    events: &mut std::fs::File,
+    events: &mut TeensyEvents,
     watchdog: Duration,
 ) -> Served {
     let mut decoder = Decoder::new();
