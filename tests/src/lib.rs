@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use millinav_control::reference::Reference;
+use millinav_kit::runlog::{self, LinkEventRow, SupervisorEventRow, TeensyEventRow};
 use millinav_kit::scenario::Scenario;
 use nalgebra::Vector2;
 
@@ -170,58 +171,53 @@ impl RunSet {
     }
 
     pub fn truth(&self) -> anyhow::Result<Vec<TruthRow>> {
-        read_truth(&self.run_dir.join("truth.csv"))
+        read_truth(
+            &self
+                .run_dir
+                .join(<runlog::TruthRow as runlog::RunLogRow>::FILE_NAME),
+        )
     }
 
     pub fn teensy_events(&self) -> anyhow::Result<Vec<TeensyEvent>> {
-        let text = std::fs::read_to_string(self.run_dir.join("teensy_events.csv"))?;
-        Ok(text
-            .lines()
-            .skip(1)
-            .filter_map(|line| {
-                let f: Vec<&str> = line.split(',').collect();
-                if f.len() != 5 {
-                    return None; // a line being written right now
-                }
-                let seq: i64 = f[1].parse().ok()?;
-                Some(TeensyEvent {
-                    monotonic_ns: f[0].parse().ok()?,
-                    frame_seq: (seq >= 0).then_some(seq as u64),
-                    max_abs_current_a: f[3].parse().ok()?,
-                    kind: f[4].to_owned(),
-                })
+        let rows: Vec<TeensyEventRow> = runlog::read_run_dir(&self.run_dir)?;
+        Ok(rows
+            .into_iter()
+            .map(|row| TeensyEvent {
+                monotonic_ns: row.monotonic_ns,
+                frame_seq: row.frame_seq,
+                max_abs_current_a: row.max_abs_current_a,
+                kind: row.event,
             })
             .collect())
     }
 
     /// coilbus's serial-link log (`open` / `lost`), as (monotonic_ns, event).
     pub fn link_events(&self) -> anyhow::Result<Vec<(u64, String)>> {
-        let text = std::fs::read_to_string(self.run_dir.join(millinav_coilbus::LINK_EVENTS_CSV))?;
-        Ok(text
-            .lines()
-            .skip(1)
-            .filter_map(|line| {
-                let mut f = line.splitn(3, ',');
-                Some((f.next()?.parse().ok()?, f.next()?.to_owned()))
-            })
+        let rows: Vec<LinkEventRow> = runlog::read_run_dir(&self.run_dir)?;
+        Ok(rows
+            .into_iter()
+            .map(|row| (row.monotonic_ns, row.event))
             .collect())
     }
 
     pub fn supervisor_events(&self) -> anyhow::Result<Vec<SupervisorEvent>> {
-        let text = std::fs::read_to_string(self.run_dir.join("supervisor_events.csv"))?;
-        Ok(text
-            .lines()
-            .skip(1)
-            .filter_map(|line| {
-                let mut f = line.splitn(4, ',');
-                Some(SupervisorEvent {
-                    monotonic_ns: f.next()?.parse().ok()?,
-                    service: f.next()?.to_owned(),
-                    event: f.next()?.to_owned(),
-                    detail: f.next().unwrap_or("").to_owned(),
-                })
-            })
-            .collect())
+        Ok(runlog::read_run_dir(&self.run_dir)?)
+    }
+
+    /// What the supervisor printed on its console (stderr).
+    pub fn supervisor_console(&self) -> anyhow::Result<String> {
+        let base = self.run_dir.parent().context("run dir has no parent")?;
+        Ok(std::fs::read_to_string(base.join("supervisor.log"))?)
+    }
+
+    /// Services the supervisor started (its `spawn` events); none when it never got that far.
+    pub fn spawned(&self) -> Vec<String> {
+        self.supervisor_events()
+            .unwrap_or_default()
+            .into_iter()
+            .filter(|e| e.event == "spawn")
+            .map(|e| e.service)
+            .collect()
     }
 
     /// Shared-memory segments of this run still present in /dev/shm (excluding iceoryx2's
@@ -277,24 +273,18 @@ pub struct TruthRow {
 }
 
 pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TruthRow>> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut rows = Vec::new();
-    for line in text.lines().skip(1) {
-        let f: Vec<&str> = line.split(',').collect();
-        if f.len() != 13 {
-            continue;
-        }
-        rows.push(TruthRow {
-            frame_seq: f[0].parse()?,
-            sim_time_s: f[1].parse()?,
-            position_m: Vector2::new(f[2].parse()?, f[3].parse()?),
-            wall_contact: f[9] == "1",
-            max_abs_current_a: f[10].parse()?,
-            lockstep_misses: f[11].parse()?,
-        });
-    }
-    Ok(rows)
+    let rows: Vec<runlog::TruthRow> = runlog::read_rows(path)?;
+    Ok(rows
+        .into_iter()
+        .map(|row| TruthRow {
+            frame_seq: row.frame_seq,
+            sim_time_s: row.sim_time_s,
+            position_m: Vector2::new(row.x_m, row.y_m),
+            wall_contact: row.wall_contact,
+            max_abs_current_a: row.max_abs_current_a,
+            lockstep_misses: row.lockstep_misses,
+        })
+        .collect())
 }
 
 #[derive(Debug, Clone)]
@@ -331,13 +321,8 @@ impl TeensyEvent {
 /// most 9 ms over a bound.
 pub const SCHEDULING_TOLERANCE_MS: f64 = 40.0;
 
-#[derive(Debug, Clone)]
-pub struct SupervisorEvent {
-    pub monotonic_ns: u64,
-    pub service: String,
-    pub event: String,
-    pub detail: String,
-}
+/// A row of `supervisor_events.csv`.
+pub type SupervisorEvent = SupervisorEventRow;
 
 /// Tracking metrics from ground truth against the scenario's reference.
 #[derive(Debug, Clone, Copy)]

@@ -16,6 +16,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use millinav_kit::ports::{Inbox, Outbox};
 use millinav_kit::recording;
+use millinav_kit::runlog::{LinkEventRow, RunLogRow, RunLogWriter};
 use millinav_kit::scenario::Scenario;
 use millinav_kit::{ConfigError, Runtime, ServiceLoop};
 use serde::{Deserialize, Serialize};
@@ -29,7 +30,7 @@ use crate::protocol::{AckStatus, CoilValues, Message, FLAG_SAFE_ZERO};
 use crate::safety::{clamp_currents, CurrentLimits, StaleFilter};
 
 /// Serial-link changes (`open`, `lost`) in a run directory: monotonic_ns,event,detail.
-pub const LINK_EVENTS_CSV: &str = "coilbus_link.csv";
+pub const LINK_EVENTS_CSV: &str = <LinkEventRow as RunLogRow>::FILE_NAME;
 
 /// Name of the emulated Teensy's pty link inside a run directory.
 pub const EMULATED_PORT_LINK: &str = "teensy.pty";
@@ -355,11 +356,8 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, config: CoilbusConfig) -> any
     let commands = Inbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
     let status_out = Outbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
     let mut link = SerialLink::new(port_path.clone(), config.baud);
-    let mut link_log = millinav_kit::open_csv_append(
-        &rt.env.run_dir.join(LINK_EVENTS_CSV),
-        "monotonic_ns,event,detail",
-    )
-    .context("opening the link log")?;
+    let mut link_log = RunLogWriter::<LinkEventRow>::in_run_dir(&rt.env.run_dir)
+        .context("opening the link log")?;
     let mut bus = CoilBus::new(
         config.limits.clone(),
         Duration::from_millis(config.command_deadline_ms),
@@ -405,7 +403,7 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, config: CoilbusConfig) -> any
 fn service_link(
     link: &mut SerialLink,
     bus: &mut CoilBus,
-    link_log: &mut impl std::io::Write,
+    link_log: &mut RunLogWriter<LinkEventRow>,
     now: Instant,
 ) {
     link.ensure_open(now);
@@ -446,13 +444,17 @@ fn apply_commands(
     Some(zero)
 }
 
-fn log_link_events(log: &mut impl std::io::Write, events: Vec<link::LinkEvent>) {
+fn log_link_events(log: &mut RunLogWriter<LinkEventRow>, events: Vec<link::LinkEvent>) {
     for event in events {
-        // Commas would split the CSV field; the detail is free text.
-        let detail = event.detail.replace(',', ";");
-        let _ = writeln!(log, "{},{},{detail}", event.monotonic_ns, event.kind);
+        let row = LinkEventRow {
+            monotonic_ns: event.monotonic_ns,
+            event: event.kind.to_string(),
+            detail: event.detail,
+        };
+        if let Err(e) = log.append_now(&row) {
+            tracing::warn!("cannot log a link change: {e}");
+        }
     }
-    let _ = log.flush();
 }
 
 #[cfg(test)]

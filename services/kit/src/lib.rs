@@ -7,6 +7,7 @@ pub mod config;
 pub mod contract;
 pub mod ports;
 pub mod recording;
+pub mod runlog;
 pub mod scenario;
 pub mod service_loop;
 pub mod service_main;
@@ -229,23 +230,4 @@ impl Runtime {
     pub fn shutdown_requested(&self) -> bool {
         self.node.wait(Duration::ZERO).is_err()
     }
-}
-
-/// Opens a run-directory CSV log for appending, writing `header` first when the file is new:
-/// a restarted process continues the same log instead of truncating it.
-pub fn open_csv_append(
-    path: &std::path::Path,
-    header: &str,
-) -> std::io::Result<std::io::BufWriter<std::fs::File>> {
-    use std::io::Write;
-    let fresh = !path.exists();
-    let file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(path)?;
-    let mut out = std::io::BufWriter::new(file);
-    if fresh {
-        writeln!(out, "{header}")?;
-    }
-    Ok(out)
 }

@@ -18,6 +18,7 @@ use fieldmaps::phantom::{ImageGeometry, Phantom};
 use fieldmaps::rig::{FluidParams, RobotParams};
 use millinav_kit::ports::{FrameOutbox, Outbox};
 use millinav_kit::recording;
+use millinav_kit::runlog::{ContactRow, RunLogRow, RunLogWriter, TeensyEventRow, TruthRow};
 use millinav_kit::scenario::{ClockMode, Scenario};
 use millinav_kit::service_loop::keep_alive;
 use millinav_kit::{ConfigContext, ConfigError, Runtime};
@@ -339,7 +340,7 @@ impl<'s> Twin<'s> {
         std::fs::create_dir_all(&rt.env.run_dir)?;
         let teensy = EmulatedTeensy::start(
             &rt.env.run_dir.join(millinav_coilbus::EMULATED_PORT_LINK),
-            &rt.env.run_dir.join("teensy_events.csv"),
+            &rt.env.run_dir.join(TeensyEventRow::FILE_NAME),
             deadlines::TEENSY_WATCHDOG,
             COIL_COUNT,
         )
@@ -528,73 +529,63 @@ impl<'s> Twin<'s> {
 }
 
 /// File name of the ground-truth trace in a run directory.
-pub const TRUTH_CSV: &str = "truth.csv";
+pub const TRUTH_CSV: &str = <TruthRow as RunLogRow>::FILE_NAME;
 
 /// Ground truth of every frame, for metrics after the run (never read by a controller).
 pub struct TruthCsv {
-    out: std::io::BufWriter<std::fs::File>,
+    out: RunLogWriter<TruthRow>,
 }
 
 impl TruthCsv {
-    pub const HEADER: &'static str =
-        "frame_seq,sim_time_s,x_m,y_m,vx_mps,vy_mps,heading_rad,flow_x_mps,flow_y_mps,wall_contact,max_abs_current_a,lockstep_misses,sum_sq_current_a2";
-
     pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
         // Append: a restarted plant continues the same trace.
-        let out = millinav_kit::open_csv_append(path, Self::HEADER)?;
+        let out = RunLogWriter::open_append(path)?;
         Ok(Self { out })
     }
 
     pub fn append(&mut self, t: &PlantTruth) -> anyhow::Result<()> {
-        use std::io::Write;
         let max_current = t
             .applied_currents_a
             .iter()
             .fold(0.0f64, |m, c| m.max(c.abs()));
         let sum_sq_current: f64 = t.applied_currents_a.iter().map(|c| c * c).sum();
-        writeln!(
-            self.out,
-            "{},{:.6},{:.9},{:.9},{:.9},{:.9},{:.6},{:.9},{:.9},{},{:.6},{},{:.6}",
-            t.frame_seq,
-            t.sim_time_ns as f64 * 1e-9,
-            t.position_m[0],
-            t.position_m[1],
-            t.velocity_mps[0],
-            t.velocity_mps[1],
-            t.heading_rad,
-            t.true_flow_mps[0],
-            t.true_flow_mps[1],
-            t.wall_contact.raw(),
-            max_current,
-            t.lockstep_misses,
-            sum_sq_current
-        )?;
+        self.out.append(&TruthRow {
+            frame_seq: t.frame_seq,
+            sim_time_s: t.sim_time_ns as f64 * 1e-9,
+            x_m: t.position_m[0],
+            y_m: t.position_m[1],
+            vx_mps: t.velocity_mps[0],
+            vy_mps: t.velocity_mps[1],
+            heading_rad: t.heading_rad,
+            flow_x_mps: t.true_flow_mps[0],
+            flow_y_mps: t.true_flow_mps[1],
+            wall_contact: t.wall_contact == Flag::TRUE,
+            max_abs_current_a: max_current,
+            lockstep_misses: t.lockstep_misses,
+            sum_sq_current_a2: Some(sum_sq_current),
+        })?;
         Ok(())
     }
 
     pub fn flush(&mut self) -> anyhow::Result<()> {
-        use std::io::Write;
         self.out.flush()?;
         Ok(())
     }
 }
 
 /// File name of the wall-contact log in a run directory.
-pub const CONTACTS_CSV: &str = "contacts.csv";
+pub const CONTACTS_CSV: &str = <ContactRow as RunLogRow>::FILE_NAME;
 
 /// Wall contacts as they start and end (one row per change), with the running onset count.
 pub struct ContactLog {
-    out: std::io::BufWriter<std::fs::File>,
+    out: RunLogWriter<ContactRow>,
     touching: bool,
     reported_events: u64,
 }
 
 impl ContactLog {
-    pub const HEADER: &'static str =
-        "frame_seq,sim_time_s,event,x_m,y_m,contact_events,contact_time_s";
-
     pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
-        let out = millinav_kit::open_csv_append(path, Self::HEADER)?;
+        let out = RunLogWriter::open_append(path)?;
         Ok(Self {
             out,
             touching: false,
@@ -605,25 +596,22 @@ impl ContactLog {
     /// Logs a `start` when a new contact began during the last step (also a brief one that
     /// ended within it) and an `end` when the capsule is free again.
     pub fn record(&mut self, frame_seq: u64, state: &PlantState) -> anyhow::Result<()> {
-        use std::io::Write;
-        let mut line = |event: &str| {
-            writeln!(
-                self.out,
-                "{frame_seq},{:.6},{event},{:.9},{:.9},{},{:.6}",
-                state.time_s,
-                state.position_m.x,
-                state.position_m.y,
-                state.contact_events,
-                state.contact_time_s
-            )
+        let row = |event: &str| ContactRow {
+            frame_seq,
+            sim_time_s: state.time_s,
+            event: event.to_owned(),
+            x_m: state.position_m.x,
+            y_m: state.position_m.y,
+            contact_events: state.contact_events,
+            contact_time_s: state.contact_time_s,
         };
         if state.contact_events > self.reported_events || (state.wall_contact && !self.touching) {
-            line("start")?;
+            self.out.append(&row("start"))?;
             if state.contact_events > self.reported_events + 1 {
                 tracing::debug!(frame_seq, "several wall contacts within one frame");
             }
         } else if !state.wall_contact && self.touching {
-            line("end")?;
+            self.out.append(&row("end"))?;
         }
         self.reported_events = state.contact_events;
         self.touching = state.wall_contact;
@@ -631,7 +619,6 @@ impl ContactLog {
     }
 
     pub fn flush(&mut self) -> anyhow::Result<()> {
-        use std::io::Write;
         self.out.flush()?;
         Ok(())
     }

@@ -22,6 +22,7 @@ use std::time::{Duration, Instant};
 use millinav_coilbus::protocol::{
     amps_to_ma, encode, ma_to_amps, AckStatus, CoilValues, Decoder, Message, Packet, FLAG_SAFE_ZERO,
 };
+use millinav_kit::runlog::{RunLogWriter, TeensyEventRow};
 use serialport::{SerialPort, TTYPort};
 use shm_schemas::{MAX_COILS, NO_FRAME};
 
@@ -104,11 +105,8 @@ impl EmulatedTeensy {
             anyhow::bail!("emulated Teensy: {coil_count} channels, must be 1 to {MAX_COILS}");
         }
         let mut pty = Pty::plug_in(link_path)?;
-        let mut events = std::fs::File::create(events_path)?;
-        writeln!(
-            events,
-            "monotonic_ns,frame_seq,flags,max_abs_current_a,event"
-        )?;
+        // Append: a restarted plant continues the board's log.
+        let mut events = TeensyEvents::open_append(events_path)?;
 
         let shared = Arc::new(Shared {
             outputs: Mutex::new(TeensyOutputs {
@@ -259,7 +257,7 @@ impl Pty {
 }
 
 /// Zeroes the outputs as a board without power (or in reset) does, and logs why.
-fn power_off(shared: &Shared, events: &mut std::fs::File, event: &str) {
+fn power_off(shared: &Shared, events: &mut TeensyEvents, event: &str) {
     {
         let mut out = lock(shared);
         out.currents_a = [0.0; MAX_COILS];
@@ -272,7 +270,7 @@ fn power_off(shared: &Shared, events: &mut std::fs::File, event: &str) {
 /// `watchdog_zero` (once per trip).
 fn check_watchdog(
     shared: &Shared,
-    events: &mut std::fs::File,
+    events: &mut RunLogWriter<TeensyEventRow>,
     last_rx: Option<Instant>,
     now: Instant,
     watchdog: Duration,
@@ -291,7 +289,7 @@ fn check_watchdog(
 /// zeroes the held currents. False when the board was stopped meanwhile.
 fn run_unplugged(
     shared: &Shared,
-    events: &mut std::fs::File,
+    events: &mut RunLogWriter<TeensyEventRow>,
     watchdog: Duration,
     last_rx: Option<Instant>,
     duration: Duration,
@@ -327,7 +325,7 @@ fn sleep_unless_stopped(shared: &Shared, duration: Duration) -> bool {
 fn stall(
     port: &mut TTYPort,
     shared: &Shared,
-    events: &mut std::fs::File,
+    events: &mut TeensyEvents,
     watchdog: Duration,
     duration: Duration,
 ) -> bool {
@@ -355,7 +353,7 @@ fn stall(
 /// each channel is clamped to the hardware limit and driven.
 fn apply_set_currents(
     shared: &Shared,
-    events: &mut std::fs::File,
+    events: &mut RunLogWriter<TeensyEventRow>,
     frame_seq: u64,
     flags: u8,
     currents_ma: &CoilValues,
@@ -418,24 +416,26 @@ fn lock(shared: &Shared) -> std::sync::MutexGuard<'_, TeensyOutputs> {
     shared.outputs.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-fn log_event(events: &mut std::fs::File, frame_seq: u64, flags: u8, currents: &[f64], event: &str) {
-    let max = currents.iter().fold(0.0f64, |m, c| m.max(c.abs()));
-    let seq = if frame_seq == NO_FRAME {
-        -1
-    } else {
-        frame_seq as i64
+type TeensyEvents = RunLogWriter<TeensyEventRow>;
+
+/// Logs what the board received or did, flushed at once: tests watch this file during the run.
+fn log_event(events: &mut TeensyEvents, frame_seq: u64, flags: u8, currents: &[f64], event: &str) {
+    let row = TeensyEventRow {
+        monotonic_ns: millinav_kit::clock::monotonic_ns(),
+        frame_seq: (frame_seq != NO_FRAME).then_some(frame_seq),
+        flags,
+        max_abs_current_a: currents.iter().fold(0.0f64, |m, c| m.max(c.abs())),
+        event: event.to_owned(),
     };
-    let _ = writeln!(
-        events,
-        "{},{seq},{flags},{max:.6},{event}",
-        millinav_kit::clock::monotonic_ns()
-    );
+    if let Err(e) = events.append_now(&row) {
+        tracing::warn!("emulated Teensy cannot log its event: {e}");
+    }
 }
 
 fn serve(
     port: &mut TTYPort,
     shared: &Shared,
-    events: &mut std::fs::File,
+    events: &mut TeensyEvents,
     watchdog: Duration,
     last_rx: &mut Option<Instant>,
 ) -> Served {

@@ -14,6 +14,8 @@ pub enum LaunchError {
     },
     #[error("launch file {path} is not valid: {message}")]
     Invalid { path: PathBuf, message: String },
+    #[error("executable for {name} not found at {path} (build with `cargo build --release`)")]
+    MissingExecutable { name: String, path: PathBuf },
 }
 
 /// One process of the set.
@@ -35,6 +37,18 @@ pub struct ProcessSpec {
 
 fn yes() -> bool {
     true
+}
+
+impl ProcessSpec {
+    /// The executable: `binary` (relative to `bin_dir` unless absolute), else
+    /// `<bin_dir>/millinav-<name>`.
+    pub fn executable(&self, bin_dir: &Path) -> PathBuf {
+        match &self.binary {
+            Some(b) if b.is_absolute() => b.clone(),
+            Some(b) => bin_dir.join(b),
+            None => bin_dir.join(format!("millinav-{}", self.name)),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -132,6 +146,24 @@ impl LaunchFile {
         Ok(launch)
     }
 
+    /// Every process's executable, in start order; an error names the first one missing.
+    pub fn executables(&self, bin_dir: &Path) -> Result<Vec<PathBuf>, LaunchError> {
+        self.processes
+            .iter()
+            .map(|spec| {
+                let path = spec.executable(bin_dir);
+                if path.is_file() {
+                    Ok(path)
+                } else {
+                    Err(LaunchError::MissingExecutable {
+                        name: spec.name.clone(),
+                        path,
+                    })
+                }
+            })
+            .collect()
+    }
+
     /// Order in which to stop: control first (no new commands), then coilbus (zeroes the
     /// coils as it exits), then the rest in reverse start order.
     pub fn shutdown_order(&self) -> Vec<ServiceId> {
@@ -171,19 +203,143 @@ mod tests {
         );
     }
 
+    fn parse_err(text: &str) -> String {
+        LaunchFile::parse(text, Path::new("sets/bad.toml"))
+            .expect_err("the launch file must be rejected")
+            .to_string()
+    }
+
     #[test]
-    fn bad_launch_files_are_explained() {
-        let p = Path::new("l.toml");
-        let err = LaunchFile::parse("[[process]]\nname = \"camera9\"\n", p).unwrap_err();
-        assert!(err.to_string().contains("unknown process name"), "{err}");
-        let err = LaunchFile::parse(
-            "[[process]]\nname = \"plant\"\n[[process]]\nname = \"plant\"\n",
-            p,
+    fn errors_name_the_launch_file() {
+        let err = parse_err("[[process]]\nname = \"camera9\"\n");
+        assert!(err.contains("sets/bad.toml"), "{err}");
+    }
+
+    #[test]
+    fn unknown_service_names_are_rejected() {
+        let err = parse_err("[[process]]\nname = \"camera9\"\n");
+        assert!(err.contains("unknown process name \"camera9\""), "{err}");
+        // The supervisor is not a child of itself.
+        let err = parse_err("[[process]]\nname = \"supervisor\"\n");
+        assert!(err.contains("unknown process name \"supervisor\""), "{err}");
+    }
+
+    #[test]
+    fn duplicate_process_names_are_rejected() {
+        let err = parse_err("[[process]]\nname = \"plant\"\n[[process]]\nname = \"plant\"\n");
+        assert!(err.contains("\"plant\" listed twice"), "{err}");
+    }
+
+    #[test]
+    fn unknown_keys_are_rejected_wherever_they_are() {
+        let err = parse_err("[[process]]\nnme = \"plant\"\n");
+        assert!(err.contains("nme"), "{err}");
+        let err = parse_err("[[process]]\nname = \"plant\"\n[restrat]\ninitial_backoff_ms = 1\n");
+        assert!(err.contains("restrat"), "{err}");
+        let err = parse_err(
+            "[[process]]\nname = \"plant\"\n[restart]\ninitial_backof_ms = 100\n\
+             max_backoff_ms = 200\nstable_after_ms = 1\nstartup_grace_ms = 1\n",
+        );
+        assert!(err.contains("initial_backof_ms"), "{err}");
+    }
+
+    #[test]
+    fn a_set_needs_at_least_one_process() {
+        assert!(parse_err("").contains("process"));
+        let err = parse_err("process = []\n");
+        assert!(err.contains("no [[process]] entries"), "{err}");
+    }
+
+    #[test]
+    fn restart_settings_are_checked() {
+        let policy = |initial: u64, max: u64| {
+            format!(
+                "[[process]]\nname = \"plant\"\n[restart]\ninitial_backoff_ms = {initial}\n\
+                 max_backoff_ms = {max}\nstable_after_ms = 5000\nstartup_grace_ms = 3000\n"
+            )
+        };
+        assert!(parse_err(&policy(0, 100)).contains("0 < initial_backoff_ms"));
+        assert!(parse_err(&policy(200, 100)).contains("initial_backoff_ms <= max_backoff_ms"));
+        let ok = LaunchFile::parse(&policy(100, 100), Path::new("ok.toml")).expect("valid");
+        assert_eq!(ok.restart.max_backoff_ms, 100);
+        // A [restart] table is all or nothing: a forgotten field is named.
+        let err = parse_err("[[process]]\nname = \"plant\"\n[restart]\ninitial_backoff_ms = 100\n");
+        assert!(err.contains("max_backoff_ms"), "{err}");
+        // The per-process restart switch is a boolean, not a policy name.
+        let err = parse_err("[[process]]\nname = \"plant\"\nrestart = \"always\"\n");
+        assert!(err.contains("restart"), "{err}");
+    }
+
+    #[test]
+    fn an_unreadable_launch_file_is_named() {
+        let err = LaunchFile::load(Path::new("/nonexistent/set.toml"))
+            .expect_err("no such file")
+            .to_string();
+        assert!(err.contains("/nonexistent/set.toml"), "{err}");
+    }
+
+    #[test]
+    fn the_default_set_survives_a_round_trip_through_toml() {
+        let text = toml::to_string(&LaunchFile::default()).expect("serialize");
+        let back = LaunchFile::parse(&text, Path::new("default.toml")).expect("parse");
+        let names: Vec<&str> = back.processes.iter().map(|p| p.name.as_str()).collect();
+        assert_eq!(names, ["plant", "coilbus", "flow", "vision", "control"]);
+        assert!(back
+            .processes
+            .iter()
+            .all(|p| p.restart && p.args.is_empty()));
+    }
+
+    #[test]
+    fn control_and_coilbus_stop_first_in_any_start_order() {
+        let launch = LaunchFile::parse(
+            "[[process]]\nname = \"coilbus\"\n[[process]]\nname = \"plant\"\n\
+             [[process]]\nname = \"control\"\n[[process]]\nname = \"vision\"\n",
+            Path::new("l.toml"),
         )
-        .unwrap_err();
-        assert!(err.to_string().contains("twice"), "{err}");
-        let err = LaunchFile::parse("[[process]]\nnme = \"plant\"\n", p).unwrap_err();
-        assert!(err.to_string().contains("nme"), "{err}");
-        assert!(LaunchFile::parse("", p).is_err());
+        .expect("valid");
+        assert_eq!(
+            launch.shutdown_order(),
+            vec![
+                ServiceId::Control,
+                ServiceId::Coilbus,
+                ServiceId::Vision,
+                ServiceId::Plant
+            ]
+        );
+    }
+
+    #[test]
+    fn executables_resolve_against_the_bin_dir_and_missing_ones_are_named() {
+        let dir = std::env::temp_dir().join(format!("launch-bins-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("sub")).expect("dir");
+        std::fs::write(dir.join("millinav-plant"), "").expect("plant");
+        std::fs::write(dir.join("sub/my-vision"), "").expect("vision");
+        let launch = LaunchFile::parse(
+            "[[process]]\nname = \"plant\"\n[[process]]\nname = \"vision\"\nbinary = \"sub/my-vision\"\n",
+            Path::new("l.toml"),
+        )
+        .expect("valid");
+        assert_eq!(
+            launch.executables(&dir).expect("both exist"),
+            vec![dir.join("millinav-plant"), dir.join("sub/my-vision")]
+        );
+        let absolute = ProcessSpec {
+            name: "flow".into(),
+            binary: Some("/usr/bin/env".into()),
+            args: Vec::new(),
+            restart: true,
+        };
+        assert_eq!(absolute.executable(&dir), PathBuf::from("/usr/bin/env"));
+        std::fs::remove_file(dir.join("sub/my-vision")).expect("remove");
+        let err = launch
+            .executables(&dir)
+            .expect_err("vision is gone")
+            .to_string();
+        assert!(
+            err.contains("vision") && err.contains("sub/my-vision"),
+            "{err}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -4,9 +4,10 @@
 //! `<run_dir>/supervisor_events.csv` so runs and tests can be audited afterwards.
 
 pub mod launch;
+pub mod preflight;
+pub mod restart;
 
 use std::collections::BTreeMap;
-use std::io::Write;
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -17,6 +18,7 @@ use millinav_kit::iceoryx2::port::listener::Listener;
 use millinav_kit::iceoryx2::prelude::*;
 use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
 use millinav_kit::ports::{heartbeat_listener, Inbox};
+use millinav_kit::runlog::{RunLogWriter, SupervisorEventRow};
 use millinav_kit::scenario::Scenario;
 use millinav_kit::{clock, env_vars, recording, rerun, Runtime};
 use nix::sys::signal::{kill, Signal};
@@ -24,6 +26,48 @@ use nix::unistd::Pid;
 use shm_schemas::{deadlines, services, Heartbeat, ServiceId};
 
 use crate::launch::{LaunchFile, ProcessSpec};
+use crate::preflight::{CheckFailure, CheckTarget};
+use crate::restart::{classify_exit, silent_too_long, Backoff, ExitKind};
+
+/// Port of the Rerun viewer the supervisor spawns (Rerun's default gRPC port).
+pub const VIEWER_PORT: u16 = 9876;
+/// Time a freshly spawned viewer gets to open its port before the services connect.
+const VIEWER_STARTUP_WAIT: Duration = Duration::from_millis(1500);
+/// Time a child gets between SIGTERM and SIGKILL at shutdown (coilbus zeroes the coils in it).
+const CHILD_STOP_GRACE: Duration = Duration::from_secs(5);
+/// How often a stopping child is polled.
+const CHILD_STOP_POLL: Duration = Duration::from_millis(10);
+/// Period of the monitor loop: reaping, restarts, hung detection, wall-time limit.
+const MONITOR_TICK: Duration = Duration::from_millis(50);
+/// Lines of a child's log shown on the console when it stops the set.
+const CONSOLE_LOG_LINES: usize = 20;
+
+/// Why the set was not started or was stopped, as the console should tell it. Both are
+/// configuration errors: `millinav run` exits with `restart::EXIT_CONFIG` for them.
+#[derive(Debug, thiserror::Error)]
+pub enum FailFast {
+    #[error("configuration check failed, nothing was started:\n{}", list_failures(.0))]
+    ChecksFailed(Vec<CheckFailure>),
+    #[error(
+        "{service} exited with a configuration error ({status}); the set was stopped. \
+         The end of {}:\n{output}",
+        .log.display()
+    )]
+    ChildConfigError {
+        service: String,
+        status: String,
+        log: PathBuf,
+        output: String,
+    },
+}
+
+fn list_failures(failures: &[CheckFailure]) -> String {
+    failures
+        .iter()
+        .map(|f| format!("  {f}"))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
 
 /// Where the viewer goes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -54,26 +98,28 @@ pub struct SupervisorOptions {
 
 /// Appends timestamped events to `supervisor_events.csv`.
 pub struct EventLog {
-    file: std::fs::File,
+    out: RunLogWriter<SupervisorEventRow>,
     rec: rerun::RecordingStream,
 }
 
 impl EventLog {
-    fn new(path: &Path, rec: rerun::RecordingStream) -> anyhow::Result<Self> {
-        let mut file = std::fs::File::create(path)?;
-        writeln!(file, "monotonic_ns,service,event,detail")?;
-        Ok(Self { file, rec })
+    fn new(run_dir: &Path, rec: rerun::RecordingStream) -> anyhow::Result<Self> {
+        Ok(Self {
+            out: RunLogWriter::in_run_dir(run_dir)?,
+            rec,
+        })
     }
 
     pub fn record(&mut self, service: ServiceId, event: &str, detail: &str) {
-        let _ = writeln!(
-            self.file,
-            "{},{},{event},{}",
-            clock::monotonic_ns(),
-            service.name(),
-            detail.replace(',', ";")
-        );
-        let _ = self.file.flush();
+        let row = SupervisorEventRow {
+            monotonic_ns: clock::monotonic_ns(),
+            service: service.name().to_owned(),
+            event: event.to_owned(),
+            detail: detail.to_owned(),
+        };
+        if let Err(e) = self.out.append_now(&row) {
+            tracing::warn!("cannot log a supervisor event: {e}");
+        }
         let _ = self.rec.log(
             "supervisor/events",
             &rerun::TextLog::new(format!("{}: {event} {detail}", service.name())),
@@ -89,8 +135,58 @@ struct ManagedProcess {
     started_at: Instant,
     /// When the process died and is waiting for its backoff to pass.
     restart_at: Option<Instant>,
-    backoff: Duration,
+    backoff: Backoff,
     last_beat: Instant,
+    /// Its stdout + stderr, appended across incarnations.
+    log: PathBuf,
+    /// Length of `log` when the current incarnation started: where its output begins.
+    log_start: u64,
+}
+
+impl ManagedProcess {
+    fn new(
+        spec: &ProcessSpec,
+        id: ServiceId,
+        log_dir: &Path,
+        policy: &launch::RestartPolicy,
+    ) -> Self {
+        let now = Instant::now();
+        Self {
+            spec: spec.clone(),
+            id,
+            child: None,
+            incarnation: 0,
+            started_at: now,
+            restart_at: None,
+            backoff: Backoff::new(policy),
+            last_beat: now,
+            log: log_dir.join(format!("{}.log", spec.name)),
+            log_start: 0,
+        }
+    }
+
+    /// The last lines its current incarnation wrote.
+    fn output_tail(&self) -> String {
+        use std::io::{Read, Seek};
+        let mut text = String::new();
+        if let Ok(mut file) = std::fs::File::open(&self.log) {
+            let _ = file.seek(std::io::SeekFrom::Start(self.log_start));
+            let mut bytes = Vec::new();
+            let _ = file.read_to_end(&mut bytes);
+            text = String::from_utf8_lossy(&bytes).into_owned();
+        }
+        let lines: Vec<&str> = text.trim_end().lines().collect();
+        lines[lines.len().saturating_sub(CONSOLE_LOG_LINES)..].join("\n")
+    }
+}
+
+/// How the monitor loop ended.
+enum Ending {
+    RunComplete,
+    Signal,
+    WallTimeLimit,
+    /// A child exited with `EXIT_CONFIG`: stop the set and say why.
+    ConfigError(FailFast),
 }
 
 /// The running set.
@@ -102,16 +198,8 @@ pub struct Supervisor {
 }
 
 impl Supervisor {
-    fn binary_of(&self, spec: &ProcessSpec) -> PathBuf {
-        match &spec.binary {
-            Some(b) if b.is_absolute() => b.clone(),
-            Some(b) => self.options.bin_dir.join(b),
-            None => self.options.bin_dir.join(format!("millinav-{}", spec.name)),
-        }
-    }
-
     fn spawn(&mut self, index: usize) -> anyhow::Result<()> {
-        let binary = self.binary_of(&self.processes[index].spec);
+        let binary = self.processes[index].spec.executable(&self.options.bin_dir);
         let log_dir = self.options.run_dir.join("logs");
         std::fs::create_dir_all(&log_dir)?;
         let process = &self.processes[index];
@@ -119,7 +207,8 @@ impl Supervisor {
         let log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
-            .open(log_dir.join(format!("{name}.log")))?;
+            .open(&process.log)?;
+        let log_start = log.metadata()?.len();
         let mut command = Command::new(&binary);
         command
             .arg("--scenario")
@@ -164,6 +253,7 @@ impl Supervisor {
         let id = process.id;
         let process = &mut self.processes[index];
         process.child = Some(child);
+        process.log_start = log_start;
         process.started_at = now;
         process.last_beat = now;
         process.restart_at = None;
@@ -188,9 +278,10 @@ impl Supervisor {
         }
     }
 
-    /// Reaps exited children; returns the service of a clean plant exit (run complete).
-    fn reap(&mut self, node: &Node<ipc::Service>) -> anyhow::Result<bool> {
-        let mut run_complete = false;
+    /// Reaps exited children and schedules their restarts; says when the set must end (the
+    /// plant finished the run, or a child rejected its configuration).
+    fn reap(&mut self, node: &Node<ipc::Service>) -> anyhow::Result<Option<Ending>> {
+        let mut ending = None;
         let policy = self.options.launch.restart.clone();
         for index in 0..self.processes.len() {
             let status = match self.processes[index].child.as_mut() {
@@ -203,21 +294,31 @@ impl Supervisor {
             let id = process.id;
             let lived = process.started_at.elapsed();
             let detail = format!("status={status} lived_ms={}", lived.as_millis());
-            if id == ServiceId::Plant && status.success() {
-                self.events.record(id, "run_complete", &detail);
-                run_complete = true;
-                continue;
+            match classify_exit(id, status) {
+                ExitKind::RunComplete => {
+                    self.events.record(id, "run_complete", &detail);
+                    ending.get_or_insert(Ending::RunComplete);
+                    continue;
+                }
+                ExitKind::ConfigError => {
+                    let output = process.output_tail();
+                    let error = FailFast::ChildConfigError {
+                        service: process.spec.name.clone(),
+                        status: status.to_string(),
+                        log: process.log.clone(),
+                        output,
+                    };
+                    self.events.record(id, "config_error", &detail);
+                    // A configuration error outranks a run that happened to complete.
+                    ending = Some(Ending::ConfigError(error));
+                    continue;
+                }
+                ExitKind::Failed => self.events.record(id, "exit", &detail),
             }
-            self.events.record(id, "exit", &detail);
             if !process.spec.restart {
                 continue;
             }
-            if lived >= Duration::from_millis(policy.stable_after_ms) {
-                process.backoff = Duration::from_millis(policy.initial_backoff_ms);
-            }
-            process.restart_at = Some(Instant::now() + process.backoff);
-            process.backoff =
-                (process.backoff * 2).min(Duration::from_millis(policy.max_backoff_ms));
+            process.restart_at = Some(Instant::now() + process.backoff.after_exit(lived, &policy));
             // The dead process's ports stay registered until someone cleans them up.
             let cleanup = node.try_cleanup_dead_nodes();
             self.events.record(
@@ -229,7 +330,28 @@ impl Supervisor {
                 ),
             );
         }
-        Ok(run_complete)
+        Ok(ending)
+    }
+
+    /// Kills the processes that stopped beating; reaping restarts them.
+    fn kill_silent(&mut self, now: Instant) {
+        let grace = Duration::from_millis(self.options.launch.restart.startup_grace_ms);
+        for index in 0..self.processes.len() {
+            let p = &self.processes[index];
+            if p.child.is_none() {
+                continue;
+            }
+            if let Some(silent) =
+                silent_too_long(now, p.started_at, p.last_beat, grace, deadlines::HEARTBEAT)
+            {
+                self.kill_hung(index, silent);
+                self.processes[index].last_beat = now;
+            }
+        }
+    }
+
+    fn spawn_all(&mut self) -> anyhow::Result<()> {
+        (0..self.processes.len()).try_for_each(|index| self.spawn(index))
     }
 
     fn restart_due(&mut self) -> anyhow::Result<()> {
@@ -260,13 +382,11 @@ impl Supervisor {
             let pid = Pid::from_raw(child.id() as i32);
             let _ = kill(pid, Signal::SIGCONT);
             let _ = kill(pid, Signal::SIGTERM);
-            let deadline = Instant::now() + Duration::from_secs(5);
+            let deadline = Instant::now() + CHILD_STOP_GRACE;
             let status = loop {
                 match child.try_wait() {
                     Ok(Some(status)) => break Some(status),
-                    Ok(None) if Instant::now() < deadline => {
-                        std::thread::sleep(Duration::from_millis(10))
-                    }
+                    Ok(None) if Instant::now() < deadline => std::thread::sleep(CHILD_STOP_POLL),
                     _ => {
                         let _ = child.kill();
                         break child.wait().ok();
@@ -297,10 +417,9 @@ fn start_viewer(mode: ViewerMode) -> anyhow::Result<Option<(Child, String)>> {
     let Some(rerun_bin) = which("rerun") else {
         bail!("--viewer spawn: no `rerun` executable on PATH (pip install rerun-sdk==0.36.3)");
     };
-    let port = 9876;
     let child = Command::new(rerun_bin)
         .arg("--port")
-        .arg(port.to_string())
+        .arg(VIEWER_PORT.to_string())
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(Stdio::null())
@@ -308,10 +427,10 @@ fn start_viewer(mode: ViewerMode) -> anyhow::Result<Option<(Child, String)>> {
         .spawn()
         .context("spawning the Rerun viewer")?;
     // Give the viewer a moment to open its port before the services connect.
-    std::thread::sleep(Duration::from_millis(1500));
+    std::thread::sleep(VIEWER_STARTUP_WAIT);
     Ok(Some((
         child,
-        format!("rerun+http://127.0.0.1:{port}/proxy"),
+        format!("rerun+http://127.0.0.1:{VIEWER_PORT}/proxy"),
     )))
 }
 
@@ -366,37 +485,103 @@ pub fn merge_recordings(run_dir: &Path) -> anyhow::Result<Option<PathBuf>> {
     Ok(Some(out))
 }
 
-/// Runs the set until the plant finishes, a signal arrives, or the wall-time limit passes.
+/// What `run` settles before anything starts.
+struct Plan {
+    scenario: Scenario,
+    scenario_path: PathBuf,
+    run_dir: PathBuf,
+    /// Each process's executable, in launch order.
+    executables: Vec<PathBuf>,
+}
+
+/// The heartbeat and health ports the supervisor listens on.
+struct Heartbeats {
+    listeners: Vec<(ServiceId, Listener<ipc::Service>)>,
+    health: Inbox<Heartbeat>,
+}
+
+/// Runs the set until the plant finishes, a signal arrives, a child rejects its
+/// configuration, or the wall-time limit passes.
 pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
-    // Fail early, with the scenario's own message, before any process starts.
-    let scenario = Scenario::load(&options.scenario)?;
-    std::fs::create_dir_all(&options.run_dir)?;
-    let run_dir = std::fs::canonicalize(&options.run_dir)?;
-    let scenario_path = std::fs::canonicalize(&options.scenario)?;
-    for spec in &options.launch.processes {
-        let probe = match &spec.binary {
-            Some(b) if b.is_absolute() => b.clone(),
-            Some(b) => options.bin_dir.join(b),
-            None => options.bin_dir.join(format!("millinav-{}", spec.name)),
-        };
-        if !probe.is_file() {
-            bail!(
-                "executable for {} not found at {} (build with `cargo build --release`)",
-                spec.name,
-                probe.display()
-            );
-        }
+    let plan = plan(&options)?;
+    check_configuration(&options.launch, &plan)?;
+    let viewer = start_viewer(options.viewer)?;
+    let base_env = run_environment(&options, &plan, viewer.as_ref().map(|(_, url)| url));
+    // The supervisor joins the run like any service.
+    for (k, v) in &base_env {
+        std::env::set_var(k, v);
     }
+    let rt = Runtime::start(ServiceId::Supervisor)?;
+    tracing::info!(
+        run_dir = %plan.run_dir.display(),
+        scenario = %plan.scenario_path.display(),
+        mode = ?plan.scenario.run.mode,
+        "supervisor starting the set"
+    );
+    let mut supervisor = Supervisor::new(&options, &plan, base_env, &rt)?;
+    clean_stale_nodes(&rt);
+    let heartbeats = Heartbeats::connect(&rt, &supervisor.processes)?;
+    let ending = supervisor
+        .spawn_all()
+        .and_then(|()| monitor(&mut supervisor, &rt, &heartbeats));
+    finish(supervisor, rt, heartbeats, viewer, &plan.run_dir, ending)
+}
+
+/// Loads the scenario (its own errors name the file and field), makes the run directory and
+/// finds every executable.
+fn plan(options: &SupervisorOptions) -> anyhow::Result<Plan> {
+    let scenario = Scenario::load(&options.scenario)?;
+    std::fs::create_dir_all(&options.run_dir)
+        .with_context(|| format!("creating the run directory {}", options.run_dir.display()))?;
+    Ok(Plan {
+        scenario,
+        scenario_path: std::fs::canonicalize(&options.scenario)?,
+        run_dir: std::fs::canonicalize(&options.run_dir)?,
+        executables: options.launch.executables(&options.bin_dir)?,
+    })
+}
+
+/// Every child checks its configuration (`--check`) before any of them starts.
+fn check_configuration(launch: &LaunchFile, plan: &Plan) -> anyhow::Result<()> {
+    let targets: Vec<CheckTarget> = launch
+        .processes
+        .iter()
+        .zip(&plan.executables)
+        .map(|(spec, executable)| CheckTarget {
+            name: spec.name.clone(),
+            executable: executable.clone(),
+            args: spec.args.clone(),
+        })
+        .collect();
+    let failures = preflight::check_all(
+        &targets,
+        &plan.scenario_path,
+        &plan.run_dir.join("logs"),
+        preflight::CHECK_TIMEOUT,
+    )
+    .context("running the configuration checks")?;
+    if failures.is_empty() {
+        Ok(())
+    } else {
+        Err(FailFast::ChecksFailed(failures).into())
+    }
+}
+
+/// The environment every process of the run gets (namespace, run dir, clock, recording).
+fn run_environment(
+    options: &SupervisorOptions,
+    plan: &Plan,
+    viewer_url: Option<&String>,
+) -> Vec<(String, String)> {
     let recording_id = format!(
         "millinav-{}-{}",
-        run_dir
+        plan.run_dir
             .file_name()
             .and_then(|n| n.to_str())
             .unwrap_or("run"),
         clock::wall_ns()
     );
-    let viewer = start_viewer(options.viewer)?;
-    let mut base_env = vec![
+    let mut env = vec![
         (env_vars::IOX_PREFIX.to_string(), options.iox_prefix.clone()),
         (
             env_vars::IOX_ROOT.to_string(),
@@ -404,59 +589,52 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
         ),
         (
             env_vars::RUN_DIR.to_string(),
-            run_dir.to_string_lossy().into_owned(),
+            plan.run_dir.to_string_lossy().into_owned(),
         ),
-        (env_vars::RECORDING_ID.to_string(), recording_id.clone()),
+        (env_vars::RECORDING_ID.to_string(), recording_id),
         (
             env_vars::CLOCK_EPOCH_NS.to_string(),
             clock::monotonic_ns().to_string(),
         ),
     ];
-    if let Some((_, url)) = &viewer {
-        base_env.push((env_vars::RERUN_CONNECT.to_string(), url.clone()));
+    if let Some(url) = viewer_url {
+        env.push((env_vars::RERUN_CONNECT.to_string(), url.clone()));
     }
-    // The supervisor joins the run like any service.
-    for (k, v) in &base_env {
-        std::env::set_var(k, v);
-    }
-    let rt = Runtime::start(ServiceId::Supervisor)?;
-    tracing::info!(
-        run_dir = %run_dir.display(),
-        scenario = %scenario_path.display(),
-        mode = ?scenario.run.mode,
-        "supervisor starting the set"
-    );
-    let events = EventLog::new(&run_dir.join("supervisor_events.csv"), rt.rec.clone())?;
-    let initial_backoff = Duration::from_millis(options.launch.restart.initial_backoff_ms);
-    let processes = options
-        .launch
-        .processes
-        .iter()
-        .filter_map(|spec| {
-            ServiceId::from_name(&spec.name).map(|id| ManagedProcess {
-                spec: spec.clone(),
-                id,
-                child: None,
-                incarnation: 0,
-                started_at: Instant::now(),
-                restart_at: None,
-                backoff: initial_backoff,
-                last_beat: Instant::now(),
-            })
-        })
-        .collect();
-    let mut supervisor = Supervisor {
-        options: SupervisorOptions {
-            scenario: scenario_path,
-            run_dir: run_dir.clone(),
-            ..options.clone()
-        },
-        processes,
-        events,
-        base_env,
-    };
+    env
+}
 
-    // A stale set from an earlier crashed run with the same prefix must not confuse this one.
+impl Supervisor {
+    fn new(
+        options: &SupervisorOptions,
+        plan: &Plan,
+        base_env: Vec<(String, String)>,
+        rt: &Runtime,
+    ) -> anyhow::Result<Self> {
+        let log_dir = plan.run_dir.join("logs");
+        let processes = options
+            .launch
+            .processes
+            .iter()
+            .filter_map(|spec| {
+                ServiceId::from_name(&spec.name)
+                    .map(|id| ManagedProcess::new(spec, id, &log_dir, &options.launch.restart))
+            })
+            .collect();
+        Ok(Self {
+            options: SupervisorOptions {
+                scenario: plan.scenario_path.clone(),
+                run_dir: plan.run_dir.clone(),
+                ..options.clone()
+            },
+            processes,
+            events: EventLog::new(&plan.run_dir, rt.rec.clone())?,
+            base_env,
+        })
+    }
+}
+
+/// A stale set from an earlier crashed run with the same prefix must not confuse this one.
+fn clean_stale_nodes(rt: &Runtime) {
     let cleanup = rt.node.try_cleanup_dead_nodes();
     if cleanup.cleanups > 0 {
         tracing::info!(
@@ -464,18 +642,30 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
             "removed resources of dead nodes"
         );
     }
-    let listeners: Vec<(ServiceId, Listener<ipc::Service>)> = supervisor
-        .processes
-        .iter()
-        .map(|p| Ok((p.id, heartbeat_listener(&rt.node, p.id)?)))
-        .collect::<anyhow::Result<_>>()?;
-    let health = Inbox::<Heartbeat>::new(&rt.node, services::HEALTH)?;
-    for index in 0..supervisor.processes.len() {
-        supervisor.spawn(index)?;
-    }
+}
 
-    let outcome = monitor(&mut supervisor, &rt, &listeners, &health);
-    if let Err(e) = &outcome {
+impl Heartbeats {
+    fn connect(rt: &Runtime, processes: &[ManagedProcess]) -> anyhow::Result<Self> {
+        let listeners = processes
+            .iter()
+            .map(|p| Ok((p.id, heartbeat_listener(&rt.node, p.id)?)))
+            .collect::<anyhow::Result<_>>()?;
+        let health = Inbox::<Heartbeat>::new(&rt.node, services::HEALTH)?;
+        Ok(Self { listeners, health })
+    }
+}
+
+/// Stops the set safe-state first, leaves the viewer to the user, merges the recordings, and
+/// turns the ending into the run's result.
+fn finish(
+    mut supervisor: Supervisor,
+    rt: Runtime,
+    heartbeats: Heartbeats,
+    viewer: Option<(Child, String)>,
+    run_dir: &Path,
+    ending: anyhow::Result<Ending>,
+) -> anyhow::Result<()> {
+    if let Err(e) = &ending {
         tracing::error!("supervisor loop failed: {e:#}");
     }
     supervisor.shutdown();
@@ -486,29 +676,31 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
         // The viewer belongs to the user now; just stop tracking it.
         let _ = child.try_wait();
     }
-    drop(listeners);
-    drop(health);
+    drop(heartbeats);
     let _ = rt.rec.flush_blocking();
     drop(supervisor);
     drop(rt);
-    match merge_recordings(&run_dir) {
+    match merge_recordings(run_dir) {
         Ok(Some(path)) => tracing::info!(recording = %path.display(), "recording written"),
         Ok(None) => {}
         Err(e) => tracing::warn!("could not merge recordings: {e:#}"),
     }
-    outcome
+    match ending? {
+        Ending::ConfigError(error) => Err(error.into()),
+        Ending::RunComplete | Ending::Signal | Ending::WallTimeLimit => Ok(()),
+    }
 }
 
 fn monitor(
     supervisor: &mut Supervisor,
     rt: &Runtime,
-    listeners: &[(ServiceId, Listener<ipc::Service>)],
-    health: &Inbox<Heartbeat>,
-) -> anyhow::Result<()> {
+    heartbeats: &Heartbeats,
+) -> anyhow::Result<Ending> {
     let waitset = WaitSetBuilder::new()
         .create::<ipc::Service>()
         .map_err(millinav_kit::iox("waitset"))?;
-    let guards = listeners
+    let guards = heartbeats
+        .listeners
         .iter()
         .map(|(id, listener)| {
             waitset
@@ -518,10 +710,9 @@ fn monitor(
         })
         .collect::<Result<Vec<_>, _>>()?;
     let _tick = waitset
-        .attach_interval(Duration::from_millis(50))
+        .attach_interval(MONITOR_TICK)
         .map_err(millinav_kit::iox("attach tick"))?;
     let start = Instant::now();
-    let grace = Duration::from_millis(supervisor.options.launch.restart.startup_grace_ms);
     let mut latest_health: BTreeMap<u32, Heartbeat> = BTreeMap::new();
     loop {
         let mut beating = Vec::new();
@@ -535,7 +726,7 @@ fn monitor(
                     }
                     CallbackProgression::Continue
                 },
-                Duration::from_millis(50),
+                MONITOR_TICK,
             )
             .map_err(millinav_kit::iox("waitset"))?;
         if matches!(
@@ -545,58 +736,63 @@ fn monitor(
             supervisor
                 .events
                 .record(ServiceId::Supervisor, "signal", "shutting down");
-            return Ok(());
-        }
-        for (id, listener) in listeners {
-            let mut got = false;
-            let _ = listener.try_wait(|_| got = true);
-            if got && !beating.contains(id) {
-                beating.push(*id);
-            }
+            return Ok(Ending::Signal);
         }
         let now = Instant::now();
-        for process in supervisor.processes.iter_mut() {
-            if beating.contains(&process.id) {
-                process.last_beat = now;
-            }
-        }
-        for beat in health.receive_all()? {
+        note_heartbeats(supervisor, heartbeats, &mut beating, now);
+        for beat in heartbeats.health.receive_all()? {
             latest_health.insert(beat.service, beat);
         }
-        if supervisor.reap(&rt.node)? {
-            return Ok(());
+        if let Some(ending) = supervisor.reap(&rt.node)? {
+            return Ok(ending);
         }
         // A live process that stopped beating is hung (or stopped): kill it; reap restarts it.
-        for index in 0..supervisor.processes.len() {
-            let p = &supervisor.processes[index];
-            let silent = now.duration_since(p.last_beat);
-            if p.child.is_some()
-                && now.duration_since(p.started_at) > grace
-                && silent > deadlines::HEARTBEAT
-            {
-                supervisor.kill_hung(index, silent);
-                supervisor.processes[index].last_beat = now;
-            }
-        }
+        supervisor.kill_silent(now);
         supervisor.restart_due()?;
-        rt.rec
-            .set_duration_secs(recording::RUN_TIMELINE, rt.env.run_clock_ns() as f64 * 1e-9);
-        for (service, beat) in &latest_health {
-            if let Some(id) = ServiceId::from_u32(*service) {
-                recording::scalar(
-                    &rt.rec,
-                    &format!("health/{}/deadline_misses", id.name()),
-                    beat.deadline_misses as f64,
-                );
-            }
-        }
+        record_health(rt, &latest_health);
         if start.elapsed() > supervisor.options.max_wall_time {
             supervisor.events.record(
                 ServiceId::Supervisor,
                 "wall_time_limit",
                 &format!("{:?}", supervisor.options.max_wall_time),
             );
-            return Ok(());
+            return Ok(Ending::WallTimeLimit);
+        }
+    }
+}
+
+/// Marks the processes that beat since the last tick (WaitSet events or pending ones).
+fn note_heartbeats(
+    supervisor: &mut Supervisor,
+    heartbeats: &Heartbeats,
+    beating: &mut Vec<ServiceId>,
+    now: Instant,
+) {
+    for (id, listener) in &heartbeats.listeners {
+        let mut got = false;
+        let _ = listener.try_wait(|_| got = true);
+        if got && !beating.contains(id) {
+            beating.push(*id);
+        }
+    }
+    for process in supervisor.processes.iter_mut() {
+        if beating.contains(&process.id) {
+            process.last_beat = now;
+        }
+    }
+}
+
+/// The run clock and each service's deadline misses, into the recording.
+fn record_health(rt: &Runtime, latest_health: &BTreeMap<u32, Heartbeat>) {
+    rt.rec
+        .set_duration_secs(recording::RUN_TIMELINE, rt.env.run_clock_ns() as f64 * 1e-9);
+    for (service, beat) in latest_health {
+        if let Some(id) = ServiceId::from_u32(*service) {
+            recording::scalar(
+                &rt.rec,
+                &format!("health/{}/deadline_misses", id.name()),
+                beat.deadline_misses as f64,
+            );
         }
     }
 }

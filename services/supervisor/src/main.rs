@@ -1,11 +1,14 @@
 //! `millinav`: the supervisor's command line.
 use std::path::PathBuf;
+use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
-use millinav_supervisor::launch::LaunchFile;
-use millinav_supervisor::{SupervisorOptions, ViewerMode};
+use millinav_kit::scenario::ScenarioError;
+use millinav_supervisor::launch::{LaunchError, LaunchFile};
+use millinav_supervisor::restart::EXIT_CONFIG;
+use millinav_supervisor::{FailFast, SupervisorOptions, ViewerMode};
 
 /// millinav: autonomous navigation of a magnetic millirobot through a heart phantom.
 /// `millinav run` launches the process set (plant/camera, vision, flow, control, coilbus) on
@@ -49,8 +52,27 @@ enum Commands {
     },
 }
 
-fn main() -> anyhow::Result<()> {
-    match Cli::parse().command {
+/// Configuration errors (scenario, launch file, a child's check or exit) end with `EX_CONFIG`,
+/// like the services themselves; anything else with 1.
+fn main() -> ExitCode {
+    match run_cli(Cli::parse()) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("Error: {error:?}");
+            let config_error = error.downcast_ref::<FailFast>().is_some()
+                || error.downcast_ref::<ScenarioError>().is_some()
+                || error.downcast_ref::<LaunchError>().is_some();
+            if config_error {
+                ExitCode::from(EXIT_CONFIG as u8)
+            } else {
+                ExitCode::FAILURE
+            }
+        }
+    }
+}
+
+fn run_cli(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
         Commands::Run {
             scenario,
             launch,

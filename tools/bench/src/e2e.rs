@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 use millinav_kit::clock::monotonic_ns;
 use millinav_kit::iceoryx2::prelude::*;
 use millinav_kit::ports::Inbox;
+use millinav_kit::runlog::{self, TeensyEventRow, TruthRow};
 use millinav_kit::{iceoryx_config, iox};
 use shm_schemas::{services, CoilCommand, Pose};
 
@@ -230,23 +231,16 @@ fn analyse(
     poses: &Arrivals,
     commands: &Arrivals,
 ) -> Result<E2eResult, BenchError> {
-    let teensy_csv = std::fs::read_to_string(run_dir.join("teensy_events.csv"))?;
+    let setup = |e: runlog::RunLogError| BenchError::Setup(e.to_string());
+    let teensy: Vec<TeensyEventRow> = runlog::read_run_dir(run_dir).map_err(setup)?;
     let mut serial: HashMap<u64, u64> = HashMap::new();
-    for line in teensy_csv.lines().skip(1) {
-        let f: Vec<&str> = line.split(',').collect();
-        if f.len() >= 5 && f[4] == "command" {
-            if let (Ok(t), Ok(seq)) = (f[0].parse::<u64>(), f[1].parse::<u64>()) {
-                serial.entry(seq).or_insert(t);
-            }
+    for event in teensy.iter().filter(|e| e.event == "command") {
+        if let Some(seq) = event.frame_seq {
+            serial.entry(seq).or_insert(event.monotonic_ns);
         }
     }
-    let truth = std::fs::read_to_string(run_dir.join(millinav_plant::TRUTH_CSV))?;
-    let last_frame = truth
-        .lines()
-        .skip(1)
-        .filter_map(|l| l.split(',').next()?.parse::<u64>().ok())
-        .max()
-        .unwrap_or(0);
+    let truth: Vec<TruthRow> = runlog::read_run_dir(run_dir).map_err(setup)?;
+    let last_frame = truth.iter().map(|row| row.frame_seq).max().unwrap_or(0);
     let poses = first_by_seq(poses);
     let commands = first_by_seq(commands);
     let captures: HashMap<u64, u64> = commands

@@ -17,6 +17,7 @@ use millinav_coilbus::protocol::{amps_to_ma, ma_to_amps};
 use millinav_coilbus::{CoilBus, CoilbusConfig};
 use millinav_control::reference::Reference;
 use millinav_kit::clock::secs_to_ns;
+use millinav_kit::runlog::{self, RunLogRow, TruthRow};
 use millinav_kit::scenario::Scenario;
 use millinav_plant::PlantConfig;
 use nalgebra::Vector2;
@@ -275,7 +276,7 @@ pub fn process_run(
             dir.join("supervisor.log").display()
         );
     }
-    read_truth(&run_dir.join("truth.csv"))
+    read_truth(&run_dir.join(TruthRow::FILE_NAME))
 }
 
 /// The trace of an earlier `process_run` of the scenario `scenario_text` in `dir`; an error if
@@ -290,39 +291,31 @@ pub fn recorded_run(scenario_text: &str, dir: &Path) -> anyhow::Result<Vec<Trace
             recorded.display()
         );
     }
-    read_truth(&dir.join("run").join("truth.csv"))
+    read_truth(&dir.join("run").join(TruthRow::FILE_NAME))
 }
 
-/// Parses a plant truth.csv into a trace (one row per frame; republished frames dropped).
+/// Reads a plant truth.csv into a trace (one row per frame; republished frames dropped).
 pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TraceRow>> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut rows = Vec::new();
+    let rows: Vec<TruthRow> = runlog::read_rows(path)?;
+    let mut trace = Vec::with_capacity(rows.len());
     let mut last_seq = None;
-    for line in text.lines().skip(1) {
-        let f: Vec<&str> = line.split(',').collect();
-        if f.len() < 12 {
+    for row in rows {
+        if last_seq == Some(row.frame_seq) {
             continue;
         }
-        let seq: u64 = f[0].parse()?;
-        if last_seq == Some(seq) {
-            continue;
-        }
-        last_seq = Some(seq);
-        let max_current: f64 = f[10].parse()?;
-        rows.push(TraceRow {
-            time_s: f[1].parse()?,
-            position_m: Vector2::new(f[2].parse()?, f[3].parse()?),
-            wall_contact: f[9] == "1",
-            max_abs_current_a: max_current,
+        last_seq = Some(row.frame_seq);
+        trace.push(TraceRow {
+            time_s: row.sim_time_s,
+            position_m: Vector2::new(row.x_m, row.y_m),
+            wall_contact: row.wall_contact,
+            max_abs_current_a: row.max_abs_current_a,
             // Older traces lack the Σ I² column: bound the sum by the largest current.
-            sum_sq_current_a2: match f.get(12) {
-                Some(v) => v.parse()?,
-                None => max_current * max_current * COIL_COUNT as f64,
-            },
+            sum_sq_current_a2: row
+                .sum_sq_current_a2
+                .unwrap_or(row.max_abs_current_a * row.max_abs_current_a * COIL_COUNT as f64),
         });
     }
-    Ok(rows)
+    Ok(trace)
 }
 
 /// Metrics of one run against its reference.
