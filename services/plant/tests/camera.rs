@@ -144,18 +144,21 @@ fn sample_has_mask_classes_and_keypoints() {
     assert!(sample.rgb[i + 2] > sample.rgb[i] + 60);
 }
 
+/// The plant's render path (background copy, then capsule, blur, lighting) run as the plant
+/// runs it, frame after frame: each frame is fully rewritten. Its speed is printed for a look,
+/// not asserted: timings belong to the bench.
 #[test]
-fn a_frame_renders_fast() {
+fn successive_frames_are_rewritten_by_the_render_path() {
     let cam = camera(CameraConfig {
         blur_passes: 2,
         ..CameraConfig::default()
     });
     let mut frame = vec![0u8; 1020 * 1020 * 3];
-    let n = 200;
+    let mut previous: Option<Vec<u8>> = None;
+    let n = 50;
     let start = Instant::now();
     for seq in 0..n {
-        let pose = capsule(-16.0 + seq as f64 * 0.02, 10.0, 0.01 * seq as f64);
-        // As the plant does it: copy the background into the frame, then finish it.
+        let pose = capsule(-16.0 + seq as f64 * 0.2, 10.0, 0.1 * seq as f64);
         frame.copy_from_slice(cam.frame_background(seq));
         cam.finish_frame(
             &mut frame,
@@ -165,12 +168,17 @@ fn a_frame_renders_fast() {
             &mut run_rng(1, seq),
             None,
         );
+        if let Some(prev) = &previous {
+            let changed = frame.iter().zip(prev).filter(|(a, b)| a != b).count();
+            // Fresh sensor noise on every pixel plus a capsule 0.2 mm further on: most bytes change.
+            assert!(
+                changed > frame.len() / 4,
+                "frame {seq}: only {changed} of {} bytes changed",
+                frame.len()
+            );
+        }
+        previous = Some(frame.clone());
     }
     let per_frame_ms = start.elapsed().as_secs_f64() * 1e3 / n as f64;
     println!("render 1020x1020 (copy + capsule + blur + lighting): {per_frame_ms:.3} ms/frame");
-    // Target ≤ 3 ms (≈1.1 ms measured on an idle core); the bound leaves room for a busy CI
-    // machine running other tests in parallel.
-    if !cfg!(debug_assertions) {
-        assert!(per_frame_ms < 6.0, "{per_frame_ms} ms per frame");
-    }
 }
