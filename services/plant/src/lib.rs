@@ -5,6 +5,7 @@
 pub mod fault_signals;
 pub mod model;
 pub mod render;
+pub mod rng_streams;
 pub mod teensy;
 pub mod trueflow;
 
@@ -189,7 +190,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     let model = build_model(scenario, &config)?;
     let mut state = initial_state(scenario, &config, &model);
     let geometry = ImageGeometry::default();
-    let mut render_rng = model::run_rng(scenario.run.seed, 1);
+    let mut render_rng = rng_streams::run_rng(scenario.run.seed, rng_streams::CAMERA_SETUP);
     let camera = Camera::with_config(
         &model.phantom,
         geometry,
@@ -204,7 +205,9 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     let mut contacts = ContactLog::create(&rt.env.run_dir.join(CONTACTS_CSV))?;
     std::fs::create_dir_all(&rt.env.run_dir)?;
     let mut teensy = EmulatedTeensy::start(
-        &rt.env.run_dir.join(millinav_coilbus::EMULATED_PORT_LINK),
+        &rt.env
+            .run_dir
+            .join(millinav_teensy_protocol::EMULATED_PORT_LINK),
         &rt.env.run_dir.join("teensy_events.csv"),
         deadlines::TEENSY_WATCHDOG,
     )
@@ -252,7 +255,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             origin_x_mm: geometry.origin_x_mm,
             origin_y_mm: geometry.origin_y_mm,
         };
-        let mut rng = model::run_rng(scenario.run.seed, 1000 + seq);
+        let mut rng = rng_streams::frame_noise_rng(scenario.run.seed, seq);
         let capsule = CapsulePose {
             position_m: shown.position_m,
             heading_rad: shown.heading_rad,

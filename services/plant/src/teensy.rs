@@ -16,7 +16,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use millinav_coilbus::protocol::{
+use millinav_teensy_protocol::{
     encode, ma_to_amps, AckStatus, Decoder, Message, Packet, FLAG_SAFE_ZERO,
 };
 use serialport::{SerialPort, TTYPort};
@@ -384,7 +384,7 @@ fn serve(
             let telemetry = encode(&Packet {
                 seq: tx_seq,
                 message: Message::Telemetry {
-                    applied_ma: out.currents_a.map(millinav_coilbus::protocol::amps_to_ma),
+                    applied_ma: out.currents_a.map(millinav_teensy_protocol::amps_to_ma),
                     watchdog_tripped: out.watchdog_tripped,
                     rx_errors: out.rx_errors.min(u32::MAX as u64) as u32,
                     frames_received: (out.frames_received & u32::MAX as u64) as u32,
