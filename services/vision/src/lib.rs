@@ -4,6 +4,7 @@
 
 pub mod classical;
 pub mod eval;
+pub mod ort_version;
 pub mod unet;
 
 use std::time::Duration;

@@ -30,10 +30,14 @@ fn environment(runtime: &Path) -> Result<ort::environment::Environment, String> 
         std::sync::OnceLock::new();
     ENVIRONMENT
         .get_or_init(|| {
-            ort::init_from(runtime)
+            // Checked before ort loads it, and held until ort has (see `open_checked`).
+            let checked = crate::ort_version::open_checked(runtime).map_err(|e| e.to_string())?;
+            let environment = ort::init_from(runtime)
                 .map_err(|e| e.to_string())?
                 .build()
-                .map_err(|e| e.to_string())
+                .map_err(|e| e.to_string());
+            drop(checked);
+            environment
         })
         .clone()
 }
