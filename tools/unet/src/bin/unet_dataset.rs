@@ -180,7 +180,7 @@ fn export_split(
     let cams: Vec<Camera> = (0..cameras)
         .map(|_| {
             let noise = rng.random_range(1.0..8.0);
-            let cam = Camera::new(phantom, geometry.clone(), &mut rng, noise);
+            let cam = Camera::new(phantom, geometry, &mut rng, noise);
             bar.inc(1);
             cam
         })
