@@ -109,11 +109,14 @@ fn recording_parses_back_with_image_pose_error_and_current_entities() {
     );
     let paths = String::from_utf8_lossy(&listing.stdout);
     println!("entities in run.rrd:\n{paths}");
+    // The README's list: camera image, mask, keypoints, estimated pose, error, force, currents.
     for wanted in [
         "/camera/image",
+        "/camera/mask",
         "/camera/keypoints",
         "/world/robot/estimated",
         "/control/error_mm/norm",
+        "/control/force_des_n/x",
         "/coilbus/current_a/0",
         "/world/planned_path",
     ] {

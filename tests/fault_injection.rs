@@ -5,13 +5,10 @@
 use std::time::Duration;
 
 use millinav_kit::clock::monotonic_ns;
-use millinav_tests::{scenario_text, tracking, RunSet};
+use millinav_tests::{scenario_text, tracking, RunSet, SCHEDULING_TOLERANCE_MS};
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
 use shm_schemas::deadlines;
-
-/// Scheduling slack allowed on top of the deadline on a loaded 2-core machine.
-const JITTER_MS: f64 = 30.0;
 
 #[test]
 fn killing_control_zeroes_coils_then_restart_resumes_tracking() {
@@ -38,7 +35,7 @@ fn killing_control_zeroes_coils_then_restart_resumes_tracking() {
         .clone();
     let zero = events
         .iter()
-        .find(|e| e.monotonic_ns > last_command_before.monotonic_ns && e.max_abs_current_a == 0.0)
+        .find(|e| e.monotonic_ns > last_command_before.monotonic_ns && e.drives_zero())
         .expect("currents reached zero after the kill")
         .clone();
     let resumed = events
@@ -82,8 +79,9 @@ fn killing_control_zeroes_coils_then_restart_resumes_tracking() {
     println!("  time to resume tracking (first new command at the Teensy): {resume:.1} ms");
 
     assert!(
-        zero_after_last_command <= deadline_ms + JITTER_MS,
-        "coils reached zero {zero_after_last_command:.1} ms after the last command; deadline {deadline_ms} ms"
+        zero_after_last_command <= deadline_ms + SCHEDULING_TOLERANCE_MS,
+        "coils reached zero {zero_after_last_command:.1} ms after the last command; deadline {deadline_ms} ms \
+         + {SCHEDULING_TOLERANCE_MS} ms tolerance"
     );
     let scenario = run.scenario().expect("scenario");
     let truth = run.truth().expect("truth");

@@ -38,9 +38,10 @@ fn scheduled_smc_dob_completes_every_flow_cell_at_10_hz() {
             let m = run(viscosity_cp, flow, "smc-dob-auto");
             let bound = paper_smc_dob_rmse_mm(viscosity_cp, flow).unwrap_or(UNREPORTED_BOUND_MM);
             assert!(m.completed, "{viscosity_cp} cP {flow:?} did not complete");
-            // 5 % above the paper's mean: one seed, where the README's matrix averages three.
+            // At or below the paper's mean, as the doc above says (seed 1 here: 0.97 vs 1.00 mm
+            // at 20 cP 7 cm/s is the thinnest margin).
             assert!(
-                m.rmse_mm <= bound * 1.05,
+                m.rmse_mm <= bound,
                 "{viscosity_cp} cP {flow:?}: RMSE {:.2} mm above the paper's {bound:.2}",
                 m.rmse_mm
             );

@@ -45,7 +45,46 @@ pub struct Coil {
     pub turns_per_loop: f64,
 }
 
+/// A winding's rectangular cross-section (annulus `inner..outer` radius, `length` along the
+/// axis, centred on the coil centre) and how finely filaments sample it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Winding {
+    pub inner_radius_m: f64,
+    pub outer_radius_m: f64,
+    pub length_m: f64,
+    pub radial_filaments: usize,
+    pub axial_filaments: usize,
+}
+
 impl Coil {
+    /// A coil of `turns` total turns spread evenly over the filaments that sample `winding`
+    /// at the midpoints of a `radial × axial` grid of its cross-section.
+    pub fn from_winding(
+        name: String,
+        center_m: Vector3<f64>,
+        axis: Unit<Vector3<f64>>,
+        winding: &Winding,
+        turns: f64,
+    ) -> Self {
+        let (nr, na) = (winding.radial_filaments, winding.axial_filaments);
+        let (ri, ro) = (winding.inner_radius_m, winding.outer_radius_m);
+        let mut loops = Vec::with_capacity(nr * na);
+        for a in 0..na {
+            // Positive offset = along the axis (toward the workspace in the paper rig).
+            let offset = winding.length_m * ((a as f64 + 0.5) / na as f64 - 0.5);
+            for r in 0..nr {
+                loops.push((ri + (ro - ri) * (r as f64 + 0.5) / nr as f64, offset));
+            }
+        }
+        Self {
+            name,
+            center_m,
+            axis,
+            loops,
+            turns_per_loop: turns / (nr * na) as f64,
+        }
+    }
+
     pub fn total_turns(&self) -> f64 {
         self.turns_per_loop * self.loops.len() as f64
     }
@@ -421,21 +460,20 @@ impl PaperRigLayout {
             let axis = Unit::new_unchecked(-out);
             for (s, size_name) in SIZE_NAMES.iter().enumerate() {
                 let (ri, ro) = self.winding_radii_m[s];
-                let mut loops = Vec::with_capacity(nr * na);
-                for a in 0..na {
-                    // Positive offset = toward the workspace (along the axis).
-                    let offset = self.winding_depth_m * ((a as f64 + 0.5) / na as f64 - 0.5);
-                    for r in 0..nr {
-                        loops.push((ri + (ro - ri) * (r as f64 + 0.5) / nr as f64, offset));
-                    }
-                }
-                coils.push(Coil {
-                    name: format!("{unit_name}_{size_name}"),
+                let winding = Winding {
+                    inner_radius_m: ri,
+                    outer_radius_m: ro,
+                    length_m: self.winding_depth_m,
+                    radial_filaments: nr,
+                    axial_filaments: na,
+                };
+                coils.push(Coil::from_winding(
+                    format!("{unit_name}_{size_name}"),
                     center_m,
                     axis,
-                    loops,
-                    turns_per_loop: turns[s] / (nr * na) as f64,
-                });
+                    &winding,
+                    turns[s],
+                ));
             }
         }
         CoilSystem { coils }

@@ -281,8 +281,22 @@ mod tests {
         assert!(err.contains("truncated"), "{err}");
         let mislabelled = text.replace("millinav-flow-v1", "something-else");
         assert!(FlowMap::parse(&mislabelled).unwrap_err().contains("format"));
-        let garbage = text.replacen("0.0000e0", "abc", 1);
-        let _ = FlowMap::parse(&garbage);
+        // A non-number in the first data row: the error names the line and the value.
+        let mut lines: Vec<String> = text.lines().map(str::to_owned).collect();
+        let first_row = lines
+            .iter()
+            .position(|l| l == "x_mm,y_mm,vx_mps,vy_mps")
+            .expect("column header")
+            + 1;
+        let mut fields: Vec<&str> = lines[first_row].split(',').collect();
+        fields[2] = "abc";
+        lines[first_row] = fields.join(",");
+        let err = FlowMap::parse(&lines.join("\n")).unwrap_err();
+        assert!(
+            err.contains(&format!("line {}", first_row + 1))
+                && err.contains("\"abc\" is not a number"),
+            "{err}"
+        );
     }
 
     #[test]

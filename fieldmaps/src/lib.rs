@@ -12,6 +12,8 @@
 //! - [`allocation`]: current allocation (paper Eq. 2–4), current/power limiting, and the
 //!   constrained (QP/SOCP, Clarabel) allocation that respects both limits.
 //! - [`phantom`]: parametric top-view heart phantom (signed distance field, raster mask).
+//! - [`rigfile`]: the rig as data: a TOML rig file (coils, camera, phantom, robot), its loader
+//!   and validation (`fieldmaps/rigs/FORMAT.md`).
 
 pub mod allocation;
 pub mod coils;
@@ -22,6 +24,7 @@ pub mod mask;
 pub mod phantom;
 pub mod physics;
 pub mod rig;
+pub mod rigfile;
 
 /// Environment variable naming the repository root that committed data (coil maps, flow maps,
 /// the UNet model, scenarios) is read from.

@@ -377,20 +377,24 @@ impl ImageGeometry {
         Ok(())
     }
 
+    /// The contract's image ↔ world mapping for this geometry (what the camera puts in every
+    /// `FrameHeader`); the conversions below delegate to it so the convention lives in one place.
+    pub fn pixel_mapping(&self) -> shm_schemas::PixelMapping {
+        shm_schemas::PixelMapping {
+            mm_per_px: self.mm_per_px,
+            origin_x_mm: self.origin_x_mm,
+            origin_y_mm: self.origin_y_mm,
+        }
+    }
+
     /// Pixel coordinates → world point, m.
     pub fn px_to_world(&self, col: f64, row: f64) -> Vector2<f64> {
-        Vector2::new(
-            self.origin_x_mm + (col + 0.5) * self.mm_per_px,
-            self.origin_y_mm - (row + 0.5) * self.mm_per_px,
-        ) * 1e-3
+        Vector2::from(self.pixel_mapping().pixel_to_world_m(col, row))
     }
 
     /// World point (m) → continuous pixel coordinates (col, row).
     pub fn world_to_px(&self, p: &Vector2<f64>) -> (f64, f64) {
-        (
-            (p.x * 1e3 - self.origin_x_mm) / self.mm_per_px - 0.5,
-            (self.origin_y_mm - p.y * 1e3) / self.mm_per_px - 0.5,
-        )
+        self.pixel_mapping().world_to_pixel([p.x, p.y])
     }
 
     /// The pixel containing `p`, if it is in the image.

@@ -3,14 +3,28 @@
 //! self-contained so they can be placed in shared memory without serialization.
 //!
 //! Units are SI (m, s, A, T, N); times are nanoseconds on the run clock (sim time in lockstep,
-//! monotonic time since run start in real-time mode). Every message carries the sequence number
-//! of the camera frame it descends from so staleness and end-to-end latency are measurable.
+//! monotonic time since run start in real-time mode). Every message carries the `FrameStamp` (or
+//! at least the sequence number) of the camera frame it descends from so staleness and
+//! end-to-end latency are measurable. Booleans travel as one-byte `Flag`s and coil values as
+//! `MAX_COILS` arrays with an `active_coils` count. `CONTRACT.md` describes every payload byte
+//! by byte for readers in other languages.
 
+use core::mem::offset_of;
 use core::time::Duration;
 use iceoryx2::prelude::ZeroCopySend;
 
-/// Number of coils in the rig (4 units x 3 concentric coils).
-pub const COIL_COUNT: usize = 12;
+/// Version of the contract: payload layouts, their meaning and the service names. Every
+/// payload's iceoryx2 type name ends in `.v<CONTRACT_VERSION>` (e.g. `millinav::Pose.v2`), and
+/// iceoryx2 refuses to connect ports whose type names differ, so a peer built against another
+/// version fails to open the services instead of misreading them. Bump it with any change a
+/// foreign reader would notice (see `CONTRACT.md`); `tests::type_names_carry_the_contract_version`
+/// checks every name.
+pub const CONTRACT_VERSION: u32 = 2;
+
+/// Largest number of coils a payload (and a serial frame) can carry. Arrays of coil values are
+/// this long; `active_coils` says how many leading entries are meaningful (the rest are zero).
+/// 16 covers the rigs in view (12 paper coils, an 8-coil ring, 6-coil Helmholtz/Maxwell sets).
+pub const MAX_COILS: usize = 16;
 
 /// Camera frame geometry of the rig (top view, ≈92 x 92 mm).
 pub const FRAME_WIDTH: u32 = 1020;
@@ -21,6 +35,126 @@ pub const FRAME_FIELD_OF_VIEW_MM: f64 = 92.0;
 
 /// Sequence value used where a message does not descend from any frame (e.g. a safe-state zero).
 pub const NO_FRAME: u64 = u64::MAX;
+
+/// A boolean in shared memory: one byte, 0 = false, 1 = true. A `bool` field would make any
+/// other byte written by a faulty or foreign peer undefined behaviour when read; a `Flag` is
+/// always a valid `u8`, and `get` reports any other value as an error for the receiver to
+/// count and treat as "not set".
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+pub struct Flag(u8);
+
+impl Flag {
+    pub const FALSE: Flag = Flag(0);
+    pub const TRUE: Flag = Flag(1);
+
+    /// The flag as received, whatever byte it holds (tests and foreign writers).
+    pub const fn from_raw(byte: u8) -> Self {
+        Self(byte)
+    }
+
+    pub const fn raw(self) -> u8 {
+        self.0
+    }
+
+    /// The flag's value, or `None` for a byte other than 0 or 1.
+    pub const fn get(self) -> Option<bool> {
+        match self.0 {
+            0 => Some(false),
+            1 => Some(true),
+            _ => None,
+        }
+    }
+}
+
+impl From<bool> for Flag {
+    fn from(value: bool) -> Self {
+        Self(u8::from(value))
+    }
+}
+
+/// Reads `flag` of `payload`, naming both in the error when it holds a byte other than 0/1.
+fn read_flag(
+    flag: Flag,
+    payload: &'static str,
+    field: &'static str,
+) -> Result<bool, ContractError> {
+    flag.get().ok_or(ContractError::BadFlag {
+        payload,
+        field,
+        value: flag.raw(),
+    })
+}
+
+/// Copies `values` into a coil array; the count goes into the payload's `active_coils`.
+pub fn coil_array(values: &[f64]) -> Result<([f64; MAX_COILS], u32), ContractError> {
+    if values.len() > MAX_COILS {
+        return Err(ContractError::BadCoilCount {
+            payload: "coil array",
+            count: values.len() as u64,
+        });
+    }
+    let mut out = [0.0; MAX_COILS];
+    out[..values.len()].copy_from_slice(values);
+    Ok((out, values.len() as u32))
+}
+
+/// The `active_coils` leading entries of a received coil array.
+fn active_slice<'a>(
+    values: &'a [f64; MAX_COILS],
+    active_coils: u32,
+    payload: &'static str,
+) -> Result<&'a [f64], ContractError> {
+    values
+        .get(..active_coils as usize)
+        .ok_or(ContractError::BadCoilCount {
+            payload,
+            count: u64::from(active_coils),
+        })
+}
+
+/// Which camera frame a message descends from: the stamp the frame source put on the frame,
+/// carried unchanged by every message computed from it (pose, flow estimate, coil command).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+pub struct FrameStamp {
+    /// Frame counter of the source, from 0; restarts with a new `incarnation`.
+    pub seq: u64,
+    /// Incarnation (restart count) of the frame source.
+    pub incarnation: u64,
+    /// Capture time on the run clock, ns.
+    pub capture_time_ns: u64,
+}
+
+impl FrameStamp {
+    pub const fn new(seq: u64, incarnation: u64, capture_time_ns: u64) -> Self {
+        Self {
+            seq,
+            incarnation,
+            capture_time_ns,
+        }
+    }
+
+    /// Capture time on the run clock, s.
+    pub fn capture_time_s(&self) -> f64 {
+        self.capture_time_ns as f64 * 1e-9
+    }
+
+    /// True if both stamps name the same frame of the same source incarnation.
+    pub fn same_frame(&self, other: &FrameStamp) -> bool {
+        self.seq == other.seq && self.incarnation == other.incarnation
+    }
+
+    /// Key that orders frames: a later source incarnation, then a later frame, is newer.
+    pub fn order_key(&self) -> (u64, u64) {
+        (self.incarnation, self.seq)
+    }
+
+    /// True if this stamp names a strictly newer frame than `other`.
+    pub fn is_newer_than(&self, other: &FrameStamp) -> bool {
+        self.order_key() > other.order_key()
+    }
+}
 
 /// Pixel layouts a frame may carry.
 #[repr(u32)]
@@ -47,26 +181,55 @@ impl PixelFormat {
     }
 }
 
-/// User header of the Frame service (`publish_subscribe::<[u8]>().user_header::<FrameHeader>()`).
+/// The contract's image ↔ world convention, the one place it is computed (`FrameHeader` and
+/// `fieldmaps::phantom::ImageGeometry` both delegate here).
 ///
-/// Pixel (col, row) maps to the world as
+/// Pixel coordinates (col, row) are continuous with pixel centres at integers; pixel (0, 0)'s
+/// outer corner is the origin:
 /// `x_mm = origin_x_mm + (col + 0.5) * mm_per_px`, `y_mm = origin_y_mm - (row + 0.5) * mm_per_px`
-/// (x right, y up; mm here because it describes the image, a user-facing artefact).
+/// (x right, y up, rows down; mm because it describes the image, a user-facing artefact).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelMapping {
+    pub mm_per_px: f64,
+    pub origin_x_mm: f64,
+    pub origin_y_mm: f64,
+}
+
+impl PixelMapping {
+    /// Pixel coordinates → world point (x, y), m.
+    pub fn pixel_to_world_m(&self, col: f64, row: f64) -> [f64; 2] {
+        [
+            (self.origin_x_mm + (col + 0.5) * self.mm_per_px) * 1e-3,
+            (self.origin_y_mm - (row + 0.5) * self.mm_per_px) * 1e-3,
+        ]
+    }
+
+    /// World point (x, y) in m → continuous pixel coordinates (col, row).
+    pub fn world_to_pixel(&self, world_m: [f64; 2]) -> (f64, f64) {
+        (
+            (world_m[0] * 1e3 - self.origin_x_mm) / self.mm_per_px - 0.5,
+            (self.origin_y_mm - world_m[1] * 1e3) / self.mm_per_px - 0.5,
+        )
+    }
+}
+
+/// User header of the Frame service (`publish_subscribe::<[u8]>().user_header::<FrameHeader>()`).
+/// Pixels map to the world by [`PixelMapping`]'s convention ([`FrameHeader::pixel_to_world_m`]).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::FrameHeader")]
+#[type_name("millinav::FrameHeader.v2")]
 pub struct FrameHeader {
-    pub seq: u64,
-    /// Incarnation of the frame source; a restarted source restarts `seq`.
-    pub incarnation: u64,
-    pub capture_time_ns: u64,
+    pub stamp: FrameStamp,
     pub width: u32,
     pub height: u32,
+    /// Bytes from one row's start to the next.
     pub stride: u32,
     /// A `PixelFormat` discriminant.
     pub pixel_format: u32,
     pub mm_per_px: f64,
+    /// World x (mm) of the outer corner of pixel (0, 0).
     pub origin_x_mm: f64,
+    /// World y (mm) of the outer corner of pixel (0, 0).
     pub origin_y_mm: f64,
 }
 
@@ -93,7 +256,37 @@ impl FrameHeader {
         if !(self.mm_per_px.is_finite() && self.mm_per_px > 0.0) {
             return Err(ContractError::BadScale(self.mm_per_px));
         }
+        if !(self.origin_x_mm.is_finite() && self.origin_y_mm.is_finite()) {
+            return Err(ContractError::BadOrigin);
+        }
         Ok(format)
+    }
+
+    /// The frame's image ↔ world mapping.
+    pub fn pixel_mapping(&self) -> PixelMapping {
+        PixelMapping {
+            mm_per_px: self.mm_per_px,
+            origin_x_mm: self.origin_x_mm,
+            origin_y_mm: self.origin_y_mm,
+        }
+    }
+
+    /// Sets the header's scale and origin from `mapping`.
+    pub fn with_mapping(mut self, mapping: PixelMapping) -> Self {
+        self.mm_per_px = mapping.mm_per_px;
+        self.origin_x_mm = mapping.origin_x_mm;
+        self.origin_y_mm = mapping.origin_y_mm;
+        self
+    }
+
+    /// Pixel coordinates (col, row; integers are pixel centres) → world point (x, y), m.
+    pub fn pixel_to_world_m(&self, col: f64, row: f64) -> [f64; 2] {
+        self.pixel_mapping().pixel_to_world_m(col, row)
+    }
+
+    /// World point (x, y) in m → continuous pixel coordinates (col, row).
+    pub fn world_to_pixel(&self, world_m: [f64; 2]) -> (f64, f64) {
+        self.pixel_mapping().world_to_pixel(world_m)
     }
 }
 
@@ -112,6 +305,16 @@ pub enum ContractError {
     ShortPayload { needed: usize, got: usize },
     #[error("bad frame scale {0} mm/px")]
     BadScale(f64),
+    #[error("non-finite frame origin")]
+    BadOrigin,
+    #[error("{payload}.{field} holds {value}, not a flag (0 or 1)")]
+    BadFlag {
+        payload: &'static str,
+        field: &'static str,
+        value: u8,
+    },
+    #[error("{payload} carries {count} coils, more than MAX_COILS = {max}", max = MAX_COILS)]
+    BadCoilCount { payload: &'static str, count: u64 },
 }
 
 /// Which localizer produced a pose.
@@ -125,11 +328,10 @@ pub enum PoseSource {
 /// Robot pose estimated by vision.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::Pose")]
+#[type_name("millinav::Pose.v2")]
 pub struct Pose {
-    pub frame_seq: u64,
-    pub frame_incarnation: u64,
-    pub capture_time_ns: u64,
+    /// The frame this pose was measured in.
+    pub stamp: FrameStamp,
     /// Centroid position (m).
     pub position_m: [f64; 2],
     /// Heading of the capsule axis, tail → tip, radians from +x.
@@ -139,16 +341,25 @@ pub struct Pose {
     pub tail_m: [f64; 2],
     /// 0..1; meaningful only when `valid`.
     pub confidence: f64,
-    /// False on no or ambiguous detection; the other fields are then not to be used.
-    pub valid: bool,
     /// A `PoseSource` discriminant.
     pub source: u32,
+    /// 1 = a pose was found; 0 = no or ambiguous detection, the other fields are not to be
+    /// used. Read it with [`Pose::validity`].
+    pub valid: Flag,
+    /// Sent as 0, ignored.
+    pub reserved: [u8; 3],
 }
 
 impl Pose {
-    /// A pose is usable only if flagged valid and all numbers are finite.
+    /// The `valid` flag, or an error when it holds a byte other than 0/1.
+    pub fn validity(&self) -> Result<bool, ContractError> {
+        read_flag(self.valid, "Pose", "valid")
+    }
+
+    /// A pose is usable only if flagged valid (a bad flag byte is not valid) and all numbers
+    /// are finite.
     pub fn is_usable(&self) -> bool {
-        self.valid
+        self.validity() == Ok(true)
             && self.position_m.iter().all(|v| v.is_finite())
             && self.heading_rad.is_finite()
             && self.confidence.is_finite()
@@ -165,17 +376,25 @@ pub mod zone {
 /// Steady-map flow estimate at the robot (flow service).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::FlowEstimate")]
+#[type_name("millinav::FlowEstimate.v2")]
 pub struct FlowEstimate {
-    /// Sequence of the frame of the pose this estimate was made for.
-    pub frame_seq: u64,
-    pub frame_incarnation: u64,
-    pub capture_time_ns: u64,
+    /// The frame of the pose this estimate was made for.
+    pub stamp: FrameStamp,
     pub velocity_mps: [f64; 2],
     pub speed_mps: f64,
     /// Bit set of `zone::*`.
     pub zone_flags: u32,
-    pub valid: bool,
+    /// 1 = the estimate may be used; read it with [`FlowEstimate::validity`].
+    pub valid: Flag,
+    /// Sent as 0, ignored.
+    pub reserved: [u8; 3],
+}
+
+impl FlowEstimate {
+    /// The `valid` flag, or an error when it holds a byte other than 0/1.
+    pub fn validity(&self) -> Result<bool, ContractError> {
+        read_flag(self.valid, "FlowEstimate", "valid")
+    }
 }
 
 /// What the controller asks of the coils.
@@ -204,19 +423,37 @@ impl ControlMode {
 /// Coil currents requested by control for one frame.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::CoilCommand")]
+#[type_name("millinav::CoilCommand.v2")]
 pub struct CoilCommand {
-    pub frame_seq: u64,
-    pub frame_incarnation: u64,
-    pub capture_time_ns: u64,
+    /// The frame of the pose the command answers.
+    pub stamp: FrameStamp,
     /// Incarnation of the control process that produced the command.
     pub control_incarnation: u64,
-    pub currents_a: [f64; COIL_COUNT],
-    pub force_des_n: [f64; 2],
-    pub field_des_t: [f64; 2],
-    pub controller_id: u32,
+    /// Coils of the rig control allocated for; coilbus rejects a command whose count is not
+    /// its own.
+    pub active_coils: u32,
     /// A `ControlMode` discriminant.
     pub mode: u32,
+    pub controller_id: u32,
+    /// Sent as 0, ignored.
+    pub reserved: u32,
+    /// A; entries from `active_coils` on are 0. Read them with [`CoilCommand::currents`].
+    pub currents_a: [f64; MAX_COILS],
+    pub force_des_n: [f64; 2],
+    pub field_des_t: [f64; 2],
+}
+
+impl CoilCommand {
+    /// The `active_coils` requested currents, or an error for a count above `MAX_COILS`.
+    pub fn currents(&self) -> Result<&[f64], ContractError> {
+        active_slice(&self.currents_a, self.active_coils, "CoilCommand")
+    }
+
+    /// Sets the currents and the active coil count from `currents_a`.
+    pub fn set_currents(&mut self, currents_a: &[f64]) -> Result<(), ContractError> {
+        (self.currents_a, self.active_coils) = coil_array(currents_a)?;
+        Ok(())
+    }
 }
 
 /// State of the serial link to the coil drivers.
@@ -230,15 +467,21 @@ pub enum LinkState {
 /// What coilbus applied and how healthy its link is.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::CoilStatus")]
+#[type_name("millinav::CoilStatus.v2")]
 pub struct CoilStatus {
     /// Frame of the last applied command (`NO_FRAME` for a safe-state zero).
     pub frame_seq: u64,
-    pub applied_currents_a: [f64; COIL_COUNT],
+    /// A; entries from `active_coils` on are 0.
+    pub applied_currents_a: [f64; MAX_COILS],
     /// A `LinkState` discriminant.
     pub link_state: u32,
-    /// True while currents are zeroed because commands missed their deadline.
-    pub watchdog_tripped: bool,
+    /// Coils coilbus drives (its configured count).
+    pub active_coils: u32,
+    /// 1 while currents are zeroed because commands missed their deadline; read it with
+    /// [`CoilStatus::watchdog`].
+    pub watchdog_tripped: Flag,
+    /// Sent as 0, ignored.
+    pub reserved: [u8; 7],
     pub frames_sent: u64,
     pub acks_received: u64,
     pub rx_errors: u64,
@@ -246,12 +489,30 @@ pub struct CoilStatus {
     pub clamp_events: u64,
     pub deadline_misses: u64,
     pub reconnects: u64,
+    /// Commands refused because their `active_coils` differs from coilbus's coil count, or
+    /// their coil data is malformed (nothing driven for them).
+    pub coil_count_rejected: u64,
+    /// Frames the board refused (its coil count differs from the frame's): `Ack` status
+    /// `RejectedCoilCount` in the serial protocol.
+    pub board_rejected: u64,
+}
+
+impl CoilStatus {
+    /// The `watchdog_tripped` flag, or an error when it holds a byte other than 0/1.
+    pub fn watchdog(&self) -> Result<bool, ContractError> {
+        read_flag(self.watchdog_tripped, "CoilStatus", "watchdog_tripped")
+    }
+
+    /// The `active_coils` applied currents, or an error for a count above `MAX_COILS`.
+    pub fn applied_currents(&self) -> Result<&[f64], ContractError> {
+        active_slice(&self.applied_currents_a, self.active_coils, "CoilStatus")
+    }
 }
 
 /// Ground truth of the digital twin. For metrics and tests only: no controller may read it.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::PlantTruth")]
+#[type_name("millinav::PlantTruth.v2")]
 pub struct PlantTruth {
     pub frame_seq: u64,
     pub sim_time_ns: u64,
@@ -259,17 +520,35 @@ pub struct PlantTruth {
     pub velocity_mps: [f64; 2],
     pub heading_rad: f64,
     pub true_flow_mps: [f64; 2],
-    pub applied_currents_a: [f64; COIL_COUNT],
+    /// A; entries from `active_coils` on are 0.
+    pub applied_currents_a: [f64; MAX_COILS],
     pub magnetic_force_n: [f64; 2],
-    pub wall_contact: bool,
     /// Frames the plant stepped without the matching command (lockstep deadline misses).
     pub lockstep_misses: u64,
+    /// Coils of the twin's rig.
+    pub active_coils: u32,
+    /// 1 while the capsule touches a canal wall; read it with [`PlantTruth::wall_contact`].
+    pub wall_contact: Flag,
+    /// Sent as 0, ignored.
+    pub reserved: [u8; 3],
+}
+
+impl PlantTruth {
+    /// The `wall_contact` flag, or an error when it holds a byte other than 0/1.
+    pub fn in_wall_contact(&self) -> Result<bool, ContractError> {
+        read_flag(self.wall_contact, "PlantTruth", "wall_contact")
+    }
+
+    /// The `active_coils` applied currents, or an error for a count above `MAX_COILS`.
+    pub fn applied_currents(&self) -> Result<&[f64], ContractError> {
+        active_slice(&self.applied_currents_a, self.active_coils, "PlantTruth")
+    }
 }
 
 /// Health beacon every service publishes on `HEALTH_SERVICE`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::Heartbeat")]
+#[type_name("millinav::Heartbeat.v2")]
 pub struct Heartbeat {
     /// A `ServiceId` discriminant.
     pub service: u32,
@@ -279,6 +558,53 @@ pub struct Heartbeat {
     pub deadline_misses: u64,
     pub wall_time_ns: u64,
 }
+
+/// Pins a payload's size, alignment and every field's byte offset at compile time: a change
+/// that moves a byte fails the build here, and `CONTRACT.md` (which lists the same numbers for
+/// foreign readers) must change with it, together with `CONTRACT_VERSION`.
+macro_rules! assert_layout {
+    ($type:ty, size $size:expr, align $align:expr, { $($field:ident @ $offset:expr),* $(,)? }) => {
+        const _: () = {
+            assert!(size_of::<$type>() == $size);
+            assert!(align_of::<$type>() == $align);
+            $(assert!(offset_of!($type, $field) == $offset);)*
+        };
+    };
+}
+
+assert_layout!(Flag, size 1, align 1, {});
+assert_layout!(FrameStamp, size 24, align 8, {
+    seq @ 0, incarnation @ 8, capture_time_ns @ 16,
+});
+assert_layout!(FrameHeader, size 64, align 8, {
+    stamp @ 0, width @ 24, height @ 28, stride @ 32, pixel_format @ 36,
+    mm_per_px @ 40, origin_x_mm @ 48, origin_y_mm @ 56,
+});
+assert_layout!(Pose, size 112, align 8, {
+    stamp @ 0, position_m @ 24, heading_rad @ 40, tip_m @ 48, centroid_m @ 64, tail_m @ 80,
+    confidence @ 96, source @ 104, valid @ 108, reserved @ 109,
+});
+assert_layout!(FlowEstimate, size 56, align 8, {
+    stamp @ 0, velocity_mps @ 24, speed_mps @ 40, zone_flags @ 48, valid @ 52, reserved @ 53,
+});
+assert_layout!(CoilCommand, size 208, align 8, {
+    stamp @ 0, control_incarnation @ 24, active_coils @ 32, mode @ 36, controller_id @ 40,
+    reserved @ 44, currents_a @ 48, force_des_n @ 176, field_des_t @ 192,
+});
+assert_layout!(CoilStatus, size 224, align 8, {
+    frame_seq @ 0, applied_currents_a @ 8, link_state @ 136, active_coils @ 140,
+    watchdog_tripped @ 144, reserved @ 145, frames_sent @ 152, acks_received @ 160,
+    rx_errors @ 168, stale_commands_rejected @ 176, clamp_events @ 184, deadline_misses @ 192,
+    reconnects @ 200, coil_count_rejected @ 208, board_rejected @ 216,
+});
+assert_layout!(PlantTruth, size 232, align 8, {
+    frame_seq @ 0, sim_time_ns @ 8, position_m @ 16, velocity_mps @ 32, heading_rad @ 48,
+    true_flow_mps @ 56, applied_currents_a @ 72, magnetic_force_n @ 200, lockstep_misses @ 216,
+    active_coils @ 224, wall_contact @ 228, reserved @ 229,
+});
+assert_layout!(Heartbeat, size 40, align 8, {
+    service @ 0, pid @ 4, incarnation @ 8, cycles @ 16, deadline_misses @ 24, wall_time_ns @ 32,
+});
 
 /// The processes of the set.
 #[repr(u32)]
@@ -369,16 +695,48 @@ pub mod deadlines {
 mod tests {
     use super::*;
 
+    fn type_name<T: ZeroCopySend>() -> &'static str {
+        // SAFETY: only reads the name; the layouts are pinned by `assert_layout!` above.
+        unsafe { <T as ZeroCopySend>::type_name() }
+    }
+
     #[test]
-    fn frame_header_validation_catches_bad_input() {
-        let good = FrameHeader {
+    fn type_names_carry_the_contract_version() {
+        let names = [
+            type_name::<FrameHeader>(),
+            type_name::<Pose>(),
+            type_name::<FlowEstimate>(),
+            type_name::<CoilCommand>(),
+            type_name::<CoilStatus>(),
+            type_name::<PlantTruth>(),
+            type_name::<Heartbeat>(),
+        ];
+        let suffix = format!(".v{CONTRACT_VERSION}");
+        for name in names {
+            assert!(
+                name.starts_with("millinav::") && name.ends_with(&suffix),
+                "{name} does not end in {suffix}"
+            );
+        }
+        assert_eq!(type_name::<Pose>(), "millinav::Pose.v2");
+    }
+
+    fn good_header() -> FrameHeader {
+        FrameHeader {
             width: FRAME_WIDTH,
             height: FRAME_HEIGHT,
             stride: FRAME_WIDTH * 3,
             pixel_format: PixelFormat::Rgb8 as u32,
             mm_per_px: FRAME_FIELD_OF_VIEW_MM / FRAME_WIDTH as f64,
+            origin_x_mm: -46.0,
+            origin_y_mm: 46.0,
             ..Default::default()
-        };
+        }
+    }
+
+    #[test]
+    fn frame_header_validation_catches_bad_input() {
+        let good = good_header();
         assert_eq!(good.validate(FRAME_BYTES), Ok(PixelFormat::Rgb8));
         assert!(matches!(
             good.validate(FRAME_BYTES - 1),
@@ -394,17 +752,114 @@ mod tests {
             ..good
         };
         assert!(bad_scale.validate(FRAME_BYTES).is_err());
+        let bad_origin = FrameHeader {
+            origin_y_mm: f64::INFINITY,
+            ..good
+        };
+        assert_eq!(
+            bad_origin.validate(FRAME_BYTES),
+            Err(ContractError::BadOrigin)
+        );
+    }
+
+    #[test]
+    fn pixel_mapping_follows_the_documented_convention_and_round_trips() {
+        let header = good_header();
+        let s = header.mm_per_px;
+        // The centre of pixel (0, 0) lies half a pixel inside the origin corner.
+        let corner = header.pixel_to_world_m(0.0, 0.0);
+        assert!((corner[0] - (-46.0 + 0.5 * s) * 1e-3).abs() < 1e-12);
+        assert!((corner[1] - (46.0 - 0.5 * s) * 1e-3).abs() < 1e-12);
+        // Rows grow downward, y grows upward.
+        assert!(header.pixel_to_world_m(0.0, 10.0)[1] < corner[1]);
+        // The image centre is the world origin for a centred camera.
+        let mid = (FRAME_WIDTH as f64 - 1.0) / 2.0;
+        let centre = header.pixel_to_world_m(mid, mid);
+        assert!(centre[0].abs() < 1e-12 && centre[1].abs() < 1e-12);
+        for (col, row) in [(12.25, 700.5), (0.0, 1019.0), (511.7, 3.3)] {
+            let (c, r) = header.world_to_pixel(header.pixel_to_world_m(col, row));
+            assert!((c - col).abs() < 1e-9 && (r - row).abs() < 1e-9);
+        }
     }
 
     #[test]
     fn nan_pose_is_not_usable() {
         let mut pose = Pose {
-            valid: true,
+            valid: Flag::TRUE,
             ..Default::default()
         };
         assert!(pose.is_usable());
         pose.position_m[0] = f64::NAN;
         assert!(!pose.is_usable());
+    }
+
+    #[test]
+    fn a_flag_byte_other_than_0_or_1_is_an_error_never_true() {
+        let mut pose = Pose {
+            valid: Flag::from_raw(2),
+            ..Default::default()
+        };
+        assert_eq!(
+            pose.validity(),
+            Err(ContractError::BadFlag {
+                payload: "Pose",
+                field: "valid",
+                value: 2
+            })
+        );
+        assert!(!pose.is_usable());
+        pose.valid = Flag::from(true);
+        assert_eq!(pose.validity(), Ok(true));
+        let flow = FlowEstimate {
+            valid: Flag::from_raw(0xFF),
+            ..Default::default()
+        };
+        assert!(flow.validity().is_err());
+        let status = CoilStatus {
+            watchdog_tripped: Flag::from_raw(7),
+            ..Default::default()
+        };
+        assert!(status.watchdog().is_err());
+        let truth = PlantTruth {
+            wall_contact: Flag::from_raw(1),
+            ..Default::default()
+        };
+        assert_eq!(truth.in_wall_contact(), Ok(true));
+        assert_eq!(Flag::default().get(), Some(false));
+    }
+
+    #[test]
+    fn coil_arrays_carry_their_count_and_reject_too_many() {
+        let mut cmd = CoilCommand::default();
+        cmd.set_currents(&[1.0, -2.0, 3.0]).unwrap();
+        assert_eq!(cmd.active_coils, 3);
+        assert_eq!(cmd.currents().unwrap(), &[1.0, -2.0, 3.0]);
+        assert!(cmd.currents_a[3..].iter().all(|c| *c == 0.0));
+        assert!(cmd.set_currents(&[0.0; MAX_COILS + 1]).is_err());
+        cmd.active_coils = MAX_COILS as u32 + 1;
+        assert_eq!(
+            cmd.currents(),
+            Err(ContractError::BadCoilCount {
+                payload: "CoilCommand",
+                count: MAX_COILS as u64 + 1
+            })
+        );
+        let status = CoilStatus {
+            active_coils: u32::MAX,
+            ..Default::default()
+        };
+        assert!(status.applied_currents().is_err());
+    }
+
+    #[test]
+    fn frame_stamps_compare_by_incarnation_then_seq() {
+        let a = FrameStamp::new(10, 1, 5);
+        assert!(FrameStamp::new(11, 1, 0).is_newer_than(&a));
+        assert!(FrameStamp::new(0, 2, 0).is_newer_than(&a));
+        assert!(!FrameStamp::new(10, 1, 99).is_newer_than(&a));
+        assert!(a.same_frame(&FrameStamp::new(10, 1, 99)));
+        assert!(!a.same_frame(&FrameStamp::new(10, 0, 5)));
+        assert!((FrameStamp::new(0, 0, 1_500_000_000).capture_time_s() - 1.5).abs() < 1e-12);
     }
 
     #[test]

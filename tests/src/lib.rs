@@ -305,6 +305,32 @@ pub struct TeensyEvent {
     pub kind: String,
 }
 
+impl TeensyEvent {
+    /// True when the board drove every coil to zero here: a frame of zeros (coilbus's safe
+    /// zero, or a command of zeros) or the board zeroing on its own (its watchdog, or the
+    /// hardware watchdog resetting a stalled board). Link events (unplug, replug, reboot) are
+    /// not: they say nothing about what the outputs did.
+    pub fn drives_zero(&self) -> bool {
+        match self.kind.as_str() {
+            "command" | "safe_zero" => self.max_abs_current_a == 0.0,
+            "watchdog_zero" | "hw_watchdog_reset" => true,
+            _ => false,
+        }
+    }
+
+    /// True for a frame coilbus sent (a command or its safe zero).
+    pub fn is_frame(&self) -> bool {
+        matches!(self.kind.as_str(), "command" | "safe_zero")
+    }
+}
+
+/// What the fault tests allow on top of a safety deadline ("coils at zero within one
+/// deadline"). The mechanisms are not instantaneous: coilbus checks its command deadline on a
+/// 20 ms tick and the board's watchdog polls every 5 ms; on top of that every process shares 2
+/// loaded cores with the build and the other tests. The README's fault-matrix run shows at
+/// most 9 ms over a bound.
+pub const SCHEDULING_TOLERANCE_MS: f64 = 40.0;
+
 #[derive(Debug, Clone)]
 pub struct SupervisorEvent {
     pub monotonic_ns: u64,

@@ -7,8 +7,8 @@ pub mod link;
 pub mod safety;
 pub use millinav_teensy_protocol as protocol;
 
-// The protocol crate carries its own coil count so it can stay dependency-free.
-const _: () = assert!(protocol::COIL_COUNT == shm_schemas::COIL_COUNT);
+// The protocol crate carries its own coil maximum so it can stay dependency-free.
+const _: () = assert!(protocol::MAX_COILS == shm_schemas::MAX_COILS);
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -22,11 +22,12 @@ use millinav_kit::scenario::Scenario;
 use millinav_kit::Runtime;
 use serde::{Deserialize, Serialize};
 use shm_schemas::{
-    deadlines, services, CoilCommand, CoilStatus, ControlMode, LinkState, COIL_COUNT, NO_FRAME,
+    deadlines, services, CoilCommand, CoilStatus, ContractError, ControlMode, Flag, LinkState,
+    MAX_COILS, NO_FRAME,
 };
 
 use crate::link::SerialLink;
-use crate::protocol::{Message, FLAG_SAFE_ZERO};
+use crate::protocol::{AckStatus, CoilValues, Message, FLAG_SAFE_ZERO};
 use crate::safety::{clamp_currents, CurrentLimits, StaleFilter};
 
 /// Serial-link changes (`open`, `lost`) in a run directory: monotonic_ns,event,detail.
@@ -42,6 +43,8 @@ pub struct CoilbusConfig {
     pub port: String,
     pub baud: u32,
     pub limits: CurrentLimits,
+    /// Coils this bus drives (at most `MAX_COILS`); a command for another count is rejected.
+    pub coil_count: usize,
     /// Zero the coils when no command was accepted for this long.
     pub command_deadline_ms: u64,
     /// Period of the housekeeping tick (reconnect, telemetry, safe-state keepalive).
@@ -54,6 +57,7 @@ impl Default for CoilbusConfig {
             port: "auto".into(),
             baud: 115_200,
             limits: CurrentLimits::default(),
+            coil_count: fieldmaps::coils::COIL_COUNT,
             command_deadline_ms: deadlines::COMMAND.as_millis() as u64,
             tick_ms: 20,
         }
@@ -61,6 +65,14 @@ impl Default for CoilbusConfig {
 }
 
 impl CoilbusConfig {
+    /// Checks what serde cannot: the coil count fits a frame.
+    pub fn validate(&self) -> Result<(), CommandError> {
+        if self.coil_count == 0 || self.coil_count > MAX_COILS {
+            return Err(CommandError::BadConfiguredCount(self.coil_count));
+        }
+        Ok(())
+    }
+
     pub fn port_path(&self, run_dir: &std::path::Path) -> PathBuf {
         if self.port == "auto" {
             run_dir.join(EMULATED_PORT_LINK)
@@ -70,12 +82,32 @@ impl CoilbusConfig {
     }
 }
 
+/// Why a command was not driven.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CommandError {
+    #[error(
+        "CoilCommand for {got} coils rejected: coilbus drives {expected} coils, nothing driven \
+         (control and coilbus are configured for different rigs)"
+    )]
+    CoilCount { got: u32, expected: usize },
+    #[error("malformed CoilCommand rejected, nothing driven: {0}")]
+    Malformed(#[from] ContractError),
+    #[error("[coilbus] coil_count = {0}: must be 1 to {max}", max = MAX_COILS)]
+    BadConfiguredCount(usize),
+}
+
+/// Log the first rejection of a kind and then every this many (a wrong rig rejects every frame).
+const REJECTION_LOG_EVERY: u64 = 100;
+
 /// The coilbus decision logic, independent of ports so it can be tested directly.
 pub struct CoilBus {
     limits: CurrentLimits,
+    coil_count: usize,
     deadline: Duration,
     stale: StaleFilter,
     last_accepted: Option<Instant>,
+    /// Whether this process has written its start-up safe zero to the board.
+    start_zero_written: bool,
     pub status: CoilStatus,
 }
 
@@ -84,53 +116,113 @@ pub struct CoilBus {
 pub struct Output {
     pub frame_seq: u64,
     pub flags: u8,
-    pub currents_a: [f64; COIL_COUNT],
+    /// The first `coil_count` entries are driven; the rest are zero.
+    pub currents_a: [f64; MAX_COILS],
+    pub coil_count: usize,
+}
+
+impl Output {
+    /// The currents of the driven coils.
+    pub fn currents(&self) -> &[f64] {
+        &self.currents_a[..self.coil_count.min(MAX_COILS)]
+    }
 }
 
 impl CoilBus {
-    pub fn new(limits: CurrentLimits, deadline: Duration) -> Self {
+    /// A bus driving `coil_count` coils (capped at `MAX_COILS`; `CoilbusConfig::validate`
+    /// rejects larger counts before this is built).
+    pub fn new(limits: CurrentLimits, deadline: Duration, coil_count: usize) -> Self {
+        let coil_count = coil_count.min(MAX_COILS);
         Self {
             limits,
+            coil_count,
             deadline,
             stale: StaleFilter::default(),
             last_accepted: None,
+            start_zero_written: false,
             status: CoilStatus {
                 frame_seq: NO_FRAME,
-                watchdog_tripped: true,
+                active_coils: coil_count as u32,
+                watchdog_tripped: Flag::TRUE,
                 ..Default::default()
             },
         }
     }
 
+    /// The requested currents of `cmd` if it addresses exactly this bus's coils.
+    pub fn check_coil_count<'a>(&self, cmd: &'a CoilCommand) -> Result<&'a [f64], CommandError> {
+        let currents = cmd.currents()?;
+        if currents.len() != self.coil_count {
+            return Err(CommandError::CoilCount {
+                got: cmd.active_coils,
+                expected: self.coil_count,
+            });
+        }
+        Ok(currents)
+    }
+
     /// Checks a command and computes what to send for it. Nothing is recorded until
     /// `applied` confirms the write reached the Teensy, so a command that could not be sent
-    /// (link down) does not make its frame count as applied.
+    /// (link down) does not make its frame count as applied. A command for another coil count
+    /// is rejected (counted in `coil_count_rejected`, logged) and nothing is driven for it.
     pub fn on_command(&mut self, cmd: &CoilCommand) -> Option<Output> {
+        let requested = match self.check_coil_count(cmd) {
+            Ok(currents) => currents,
+            Err(e) => {
+                self.status.coil_count_rejected += 1;
+                let n = self.status.coil_count_rejected;
+                if n == 1 || n.is_multiple_of(REJECTION_LOG_EVERY) {
+                    tracing::error!(rejected = n, "{e}");
+                }
+                return None;
+            }
+        };
         if !self.stale.is_fresh(cmd) {
             self.status.stale_commands_rejected += 1;
             return None;
         }
+        let zeros = [0.0; MAX_COILS];
         let requested = match ControlMode::from_u32(cmd.mode) {
-            Some(ControlMode::Track) | Some(ControlMode::Hold) => cmd.currents_a,
+            Some(ControlMode::Track) | Some(ControlMode::Hold) => requested,
             // Safe, or a mode this build does not know: zero.
-            _ => [0.0; COIL_COUNT],
+            _ => &zeros[..self.coil_count],
         };
-        let (currents, clamped) = clamp_currents(&requested, &self.limits);
+        let (currents, clamped) = clamp_currents(requested, &self.limits);
         if clamped {
             self.status.clamp_events += 1;
         }
         Some(Output {
-            frame_seq: cmd.frame_seq,
+            frame_seq: cmd.stamp.seq,
             flags: 0,
             currents_a: currents,
+            coil_count: self.coil_count,
         })
+    }
+
+    /// Counts a board acknowledgement; a board that refused a frame for its coil count is
+    /// counted in `board_rejected` and logged.
+    pub fn on_ack(&mut self, status: u8) {
+        self.status.acks_received += 1;
+        if status == AckStatus::RejectedCoilCount as u8 {
+            self.status.board_rejected += 1;
+            let n = self.status.board_rejected;
+            if n == 1 || n.is_multiple_of(REJECTION_LOG_EVERY) {
+                tracing::error!(
+                    rejected = n,
+                    coil_count = self.coil_count,
+                    "the coil-driver board rejected a frame for {} coils: its own coil count \
+                     differs (nothing driven); check [coilbus] coil_count against the board",
+                    self.coil_count
+                );
+            }
+        }
     }
 
     /// Records that `out`, computed from `cmd`, was written to the Teensy.
     pub fn applied(&mut self, cmd: &CoilCommand, out: &Output, now: Instant) {
         self.stale.commit(cmd);
         self.last_accepted = Some(now);
-        self.status.watchdog_tripped = false;
+        self.status.watchdog_tripped = Flag::FALSE;
         self.status.frame_seq = out.frame_seq;
         self.status.applied_currents_a = out.currents_a;
     }
@@ -144,8 +236,8 @@ impl CoilBus {
         if !expired {
             return None;
         }
-        if !self.status.watchdog_tripped {
-            self.status.watchdog_tripped = true;
+        if self.status.watchdog_tripped != Flag::TRUE {
+            self.status.watchdog_tripped = Flag::TRUE;
             self.status.deadline_misses += 1;
             tracing::warn!(
                 "no command for {:?}: coils to zero (safe state)",
@@ -155,23 +247,41 @@ impl CoilBus {
         Some(self.safe_zero())
     }
 
+    /// A (re)started coilbus does not know what the board drives (its predecessor may have died
+    /// mid-command), so its first frame is a safe zero and commands apply from the next cycle
+    /// on. Returns that zero until `start_zero_sent` confirms it reached the board.
+    pub fn start_zero(&mut self) -> Option<Output> {
+        (!self.start_zero_written).then(|| self.safe_zero())
+    }
+
+    /// Records that the start-up zero was written to the board.
+    pub fn start_zero_sent(&mut self) {
+        self.start_zero_written = true;
+    }
+
     pub fn safe_zero(&mut self) -> Output {
         self.status.frame_seq = NO_FRAME;
-        self.status.applied_currents_a = [0.0; COIL_COUNT];
+        self.status.applied_currents_a = [0.0; MAX_COILS];
         Output {
             frame_seq: NO_FRAME,
             flags: FLAG_SAFE_ZERO,
-            currents_a: [0.0; COIL_COUNT],
+            currents_a: [0.0; MAX_COILS],
+            coil_count: self.coil_count,
         }
     }
 }
 
 /// Writes one output to the Teensy; true when the bytes went out.
 fn write_output(link: &mut SerialLink, bus: &mut CoilBus, out: &Output) -> bool {
+    let currents_ma = out.currents_a.map(protocol::amps_to_ma);
+    // `Output` never holds more than MAX_COILS coils, so the block always fits a frame.
+    let Some(currents_ma) = CoilValues::new(&currents_ma[..out.coil_count.min(MAX_COILS)]) else {
+        return false;
+    };
     let message = Message::SetCurrents {
         frame_seq: out.frame_seq,
         flags: out.flags,
-        currents_ma: out.currents_a.map(protocol::amps_to_ma),
+        currents_ma,
     };
     let sent = link.send(&message);
     if sent {
@@ -181,19 +291,20 @@ fn write_output(link: &mut SerialLink, bus: &mut CoilBus, out: &Output) -> bool 
 }
 
 fn log_output(rec: &millinav_kit::rerun::RecordingStream, out: &Output, bus: &CoilBus) {
-    for (i, current) in out.currents_a.iter().enumerate() {
+    for (i, current) in out.currents().iter().enumerate() {
         recording::scalar(rec, &format!("coilbus/current_a/{i}"), *current);
     }
     recording::scalar(
         rec,
         "coilbus/watchdog_tripped",
-        f64::from(u8::from(bus.status.watchdog_tripped)),
+        f64::from(bus.status.watchdog_tripped.raw()),
     );
 }
 
 /// The coilbus process loop.
 pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     let config: CoilbusConfig = scenario.section("coilbus")?;
+    config.validate()?;
     let port_path = config.port_path(&rt.env.run_dir);
     let commands = Inbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
     let status_out = Outbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
@@ -206,6 +317,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     let mut bus = CoilBus::new(
         config.limits.clone(),
         Duration::from_millis(config.command_deadline_ms),
+        config.coil_count,
     );
     let run_start = Instant::now();
 
@@ -247,8 +359,8 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         let now = Instant::now();
         link.ensure_open(now);
         for packet in link.poll() {
-            if let Message::Ack { .. } = packet.message {
-                bus.status.acks_received += 1;
+            if let Message::Ack { status, .. } = packet.message {
+                bus.on_ack(status);
             }
         }
         log_link_events(&mut link_log, link.take_events());
@@ -260,7 +372,12 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         let _ = command_event;
         // Only the newest fresh command matters: older ones in the queue are superseded.
         let mut sent = None;
-        if let Some((cmd, out)) = received
+        if let Some(zero) = bus.start_zero() {
+            if write_output(&mut link, &mut bus, &zero) {
+                bus.start_zero_sent();
+                sent = Some(zero);
+            }
+        } else if let Some((cmd, out)) = received
             .iter()
             .rev()
             .find_map(|cmd| bus.on_command(cmd).map(|out| (cmd, out)))
@@ -329,26 +446,37 @@ pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()>
 mod tests {
     use super::*;
 
+    const COILS: usize = 12;
+
     fn command(seq: u64, incarnation: u64, current: f64) -> CoilCommand {
-        CoilCommand {
-            frame_seq: seq,
+        command_for(COILS, seq, incarnation, current)
+    }
+
+    fn command_for(coils: usize, seq: u64, incarnation: u64, current: f64) -> CoilCommand {
+        let mut cmd = CoilCommand {
+            stamp: shm_schemas::FrameStamp::new(seq, 0, 0),
             control_incarnation: incarnation,
-            currents_a: [current; COIL_COUNT],
             mode: ControlMode::Track as u32,
             ..Default::default()
-        }
+        };
+        cmd.set_currents(&vec![current; coils]).unwrap();
+        cmd
+    }
+
+    fn bus() -> CoilBus {
+        CoilBus::new(CurrentLimits::default(), Duration::from_millis(100), COILS)
     }
 
     #[test]
     fn deadline_zeroes_and_new_command_recovers() {
-        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100));
+        let mut bus = bus();
         let t0 = Instant::now();
         apply(&mut bus, &command(1, 0, 1.0), t0).unwrap();
         assert!(bus.on_tick(t0 + Duration::from_millis(50)).is_none());
         let zero = bus.on_tick(t0 + Duration::from_millis(150)).unwrap();
-        assert_eq!(zero.currents_a, [0.0; COIL_COUNT]);
+        assert_eq!(zero.currents(), [0.0; COILS]);
         assert_eq!(zero.flags, FLAG_SAFE_ZERO);
-        assert!(bus.status.watchdog_tripped);
+        assert_eq!(bus.status.watchdog(), Ok(true));
         assert_eq!(bus.status.deadline_misses, 1);
         let out = apply(
             &mut bus,
@@ -356,13 +484,28 @@ mod tests {
             t0 + Duration::from_millis(160),
         )
         .unwrap();
-        assert_eq!(out.currents_a, [1.0; COIL_COUNT]);
-        assert!(!bus.status.watchdog_tripped);
+        assert_eq!(out.currents(), [1.0; COILS]);
+        assert_eq!(bus.status.watchdog(), Ok(false));
+    }
+
+    #[test]
+    fn a_started_coilbus_zeroes_the_board_before_any_command() {
+        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100));
+        let zero = bus
+            .start_zero()
+            .expect("a fresh coilbus starts with a zero");
+        assert_eq!(zero.currents_a, [0.0; COIL_COUNT]);
+        assert_eq!(zero.flags, FLAG_SAFE_ZERO);
+        // Not written yet (link closed): still owed.
+        assert!(bus.start_zero().is_some());
+        bus.start_zero_sent();
+        assert!(bus.start_zero().is_none());
+        assert!(apply(&mut bus, &command(1, 0, 1.0), Instant::now()).is_some());
     }
 
     #[test]
     fn stale_and_old_incarnation_commands_are_rejected() {
-        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100));
+        let mut bus = bus();
         let t = Instant::now();
         assert!(apply(&mut bus, &command(10, 1, 1.0), t).is_some());
         assert!(apply(&mut bus, &command(9, 1, 1.0), t).is_none());
@@ -375,7 +518,7 @@ mod tests {
 
     #[test]
     fn a_command_that_was_not_written_can_be_sent_again() {
-        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100));
+        let mut bus = bus();
         let cmd = command(0, 0, 1.0);
         // Link down: computed but never applied.
         assert!(bus.on_command(&cmd).is_some());
@@ -386,7 +529,7 @@ mod tests {
     #[test]
     fn limits_clamp_even_wild_and_nan_commands() {
         let limits = CurrentLimits::default();
-        let mut bus = CoilBus::new(limits.clone(), Duration::from_millis(100));
+        let mut bus = CoilBus::new(limits.clone(), Duration::from_millis(100), COILS);
         let mut wild = command(1, 0, 1e6);
         wild.currents_a[3] = f64::NAN;
         let out = apply(&mut bus, &wild, Instant::now()).unwrap();
@@ -406,11 +549,78 @@ mod tests {
 
     #[test]
     fn safe_mode_command_zeroes() {
-        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100));
+        let mut bus = bus();
         let mut cmd = command(1, 0, 2.0);
         cmd.mode = ControlMode::Safe as u32;
         let out = apply(&mut bus, &cmd, Instant::now()).unwrap();
-        assert_eq!(out.currents_a, [0.0; COIL_COUNT]);
+        assert_eq!(out.currents(), [0.0; COILS]);
+    }
+
+    #[test]
+    fn a_command_for_another_coil_count_is_rejected_and_nothing_is_driven() {
+        let mut bus = bus();
+        let t0 = Instant::now();
+        apply(&mut bus, &command(1, 0, 1.0), t0).unwrap();
+        let applied = bus.status.applied_currents_a;
+        for coils in [8, 11, 13, 16] {
+            let cmd = command_for(coils, 2, 0, 2.0);
+            assert!(bus.on_command(&cmd).is_none(), "{coils} coils accepted");
+            let err = bus.check_coil_count(&cmd).unwrap_err();
+            assert_eq!(
+                err,
+                CommandError::CoilCount {
+                    got: coils as u32,
+                    expected: COILS
+                }
+            );
+            assert!(err
+                .to_string()
+                .contains(&format!("for {coils} coils rejected")));
+        }
+        assert_eq!(bus.status.coil_count_rejected, 4);
+        // What was driven before stays; the right count for the same frame still goes through.
+        assert_eq!(bus.status.applied_currents_a, applied);
+        assert_eq!(bus.status.active_coils, COILS as u32);
+        assert!(apply(&mut bus, &command(2, 0, 2.0), t0).is_some());
+        // The deadline still zeroes the coils when only wrong-count commands arrive.
+        assert!(bus.on_command(&command_for(8, 3, 0, 2.0)).is_none());
+        let zero = bus.on_tick(t0 + Duration::from_millis(150)).unwrap();
+        assert_eq!(zero.currents(), [0.0; COILS]);
+    }
+
+    #[test]
+    fn a_command_with_an_impossible_coil_count_is_rejected() {
+        let mut bus = bus();
+        let mut cmd = command(1, 0, 1.0);
+        cmd.active_coils = MAX_COILS as u32 + 1;
+        assert!(matches!(
+            bus.check_coil_count(&cmd),
+            Err(CommandError::Malformed(ContractError::BadCoilCount { .. }))
+        ));
+        assert!(bus.on_command(&cmd).is_none());
+        assert_eq!(bus.status.coil_count_rejected, 1);
+    }
+
+    #[test]
+    fn board_rejections_are_counted() {
+        let mut bus = bus();
+        bus.on_ack(AckStatus::Applied as u8);
+        bus.on_ack(AckStatus::RejectedCoilCount as u8);
+        assert_eq!(bus.status.acks_received, 2);
+        assert_eq!(bus.status.board_rejected, 1);
+    }
+
+    #[test]
+    fn configured_coil_count_is_validated() {
+        let mut config = CoilbusConfig::default();
+        assert!(config.validate().is_ok());
+        for bad in [0, MAX_COILS + 1] {
+            config.coil_count = bad;
+            assert_eq!(
+                config.validate(),
+                Err(CommandError::BadConfiguredCount(bad))
+            );
+        }
     }
 
     /// on_command followed by a successful write.

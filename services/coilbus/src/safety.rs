@@ -2,7 +2,7 @@
 //! asks for, so they are deliberately independent of the control code.
 
 use serde::{Deserialize, Serialize};
-use shm_schemas::{CoilCommand, COIL_COUNT};
+use shm_schemas::{CoilCommand, FrameStamp, MAX_COILS};
 
 /// Hard limits of the drivers and supplies.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -27,13 +27,11 @@ impl Default for CurrentLimits {
 }
 
 /// Non-finite entries become zero, each coil is clipped to its limit, then all are scaled
-/// together to respect the total power. Returns the currents and whether anything changed.
-pub fn clamp_currents(
-    requested: &[f64; COIL_COUNT],
-    limits: &CurrentLimits,
-) -> ([f64; COIL_COUNT], bool) {
+/// together to respect the total power. Returns the currents (the first `requested.len()`
+/// entries, at most `MAX_COILS`; the rest zero) and whether anything changed.
+pub fn clamp_currents(requested: &[f64], limits: &CurrentLimits) -> ([f64; MAX_COILS], bool) {
     let mut changed = false;
-    let mut out = [0.0; COIL_COUNT];
+    let mut out = [0.0; MAX_COILS];
     let max = limits.max_current_a.abs();
     for (o, r) in out.iter_mut().zip(requested) {
         *o = if r.is_finite() {
@@ -58,7 +56,7 @@ pub fn clamp_currents(
 #[derive(Debug, Default)]
 pub struct StaleFilter {
     newest_control_incarnation: u64,
-    last_frame: Option<(u64, u64)>,
+    last_frame: Option<FrameStamp>,
 }
 
 impl StaleFilter {
@@ -67,14 +65,14 @@ impl StaleFilter {
         if cmd.control_incarnation < self.newest_control_incarnation {
             return false;
         }
-        let frame = (cmd.frame_incarnation, cmd.frame_seq);
-        self.last_frame.is_none_or(|last| frame > last)
+        self.last_frame
+            .is_none_or(|last| cmd.stamp.is_newer_than(&last))
     }
 
     /// Records `cmd` as applied.
     pub fn commit(&mut self, cmd: &CoilCommand) {
         self.newest_control_incarnation =
             self.newest_control_incarnation.max(cmd.control_incarnation);
-        self.last_frame = Some((cmd.frame_incarnation, cmd.frame_seq));
+        self.last_frame = Some(cmd.stamp);
     }
 }

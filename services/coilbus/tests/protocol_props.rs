@@ -2,13 +2,15 @@
 //! corruption. The fuzz target (`fuzz/fuzz_targets/decoder.rs`) checks the same invariants.
 
 use millinav_coilbus::protocol::{
-    check_decoder_invariants, encode, Decoder, Message, Packet, HEADER_LEN, SYNC,
+    check_decoder_invariants, encode, CoilValues, Decoder, Message, Packet, MAX_COILS, MAX_FRAME,
+    SYNC,
 };
 use proptest::prelude::*;
-use shm_schemas::COIL_COUNT;
 
-fn currents() -> impl Strategy<Value = [i32; COIL_COUNT]> {
-    proptest::array::uniform12(any::<i32>())
+/// Any coil count the protocol allows (0 to MAX_COILS), any currents.
+fn currents() -> impl Strategy<Value = CoilValues> {
+    proptest::collection::vec(any::<i32>(), 0..=MAX_COILS)
+        .prop_map(|values| CoilValues::new(&values).expect("at most MAX_COILS values"))
 }
 
 fn message() -> impl Strategy<Value = Message> {
@@ -107,13 +109,13 @@ proptest! {
         at in any::<prop::sample::Index>(),
     ) {
         let mut corrupted = encode(&bad);
-        // Any byte after the sync word: kind, length, seq, payload or CRC.
+        // Any byte after the sync word: version, kind, length, seq, payload or CRC.
         let i = SYNC.len() + at.index(corrupted.len() - SYNC.len());
         corrupted[i] ^= 1 << bit;
         let mut stream = corrupted.clone();
         stream.extend(encode(&good));
         // A corrupted length may make the decoder wait for more bytes: pad with zeros.
-        stream.extend([0u8; 2 * (HEADER_LEN + 64)]);
+        stream.extend([0u8; 2 * MAX_FRAME]);
         let mut decoder = Decoder::new();
         let got = decoder.push(&stream);
         prop_assert_eq!(got, vec![good]);

@@ -17,6 +17,7 @@ use fieldmaps::coils::CoilSystem;
 use fieldmaps::phantom::Phantom;
 use fieldmaps::physics;
 use fieldmaps::rig::{CoilLimits, RobotParams};
+use millinav_kit::contract::ContractViolations;
 use millinav_kit::iceoryx2::prelude::*;
 use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
 use millinav_kit::ports::{Inbox, Outbox};
@@ -27,7 +28,7 @@ use millinav_kit::Runtime;
 use nalgebra::{DVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 use shm_schemas::{
-    deadlines, services, zone, CoilCommand, ControlMode, FlowEstimate, Pose, COIL_COUNT,
+    deadlines, services, zone, CoilCommand, ControlMode, FlowEstimate, FrameStamp, Pose, MAX_COILS,
 };
 
 use crate::controllers::{
@@ -96,6 +97,9 @@ impl Default for ControlConfig {
     }
 }
 
+// The rig control allocates for must fit the contract's coil arrays.
+const _: () = assert!(fieldmaps::coils::COIL_COUNT <= MAX_COILS);
+
 impl ControlConfig {
     /// The MPC gains of this table, with the force bound resolved from its current limits and
     /// orientation field when the MPC is the selected controller.
@@ -132,6 +136,8 @@ pub struct ControlLoop {
     last_good: Option<(u64, Vector2<f64>)>,
     velocity: Vector2<f64>,
     last_mode: ControlMode,
+    /// Poses and flow estimates that broke the contract (bad flag bytes); treated as invalid.
+    pub violations: ContractViolations,
 }
 
 impl ControlLoop {
@@ -165,6 +171,25 @@ impl ControlLoop {
             last_good: None,
             velocity: Vector2::zeros(),
             last_mode: ControlMode::Safe,
+            violations: ContractViolations::default(),
+        }
+    }
+
+    /// Coils the loop allocates for: the `active_coils` of every command.
+    pub fn coil_count(&self) -> usize {
+        self.coils.len()
+    }
+
+    /// A command answering `pose` with no currents yet (all coils of the rig at zero).
+    fn command_for(&self, pose: &Pose) -> CoilCommand {
+        CoilCommand {
+            stamp: pose.stamp,
+            control_incarnation: self.incarnation,
+            controller_id: self.controller.id(),
+            // The rig's count (the paper rig's fits MAX_COILS, asserted below); a count that did
+            // not fit would make coilbus reject the command as malformed.
+            active_coils: self.coil_count() as u32,
+            ..Default::default()
         }
     }
 
@@ -178,9 +203,11 @@ impl ControlLoop {
     }
 
     /// Why a pose cannot be used, if it cannot.
-    fn check_pose(&self, pose: &Pose, t_ns: u64) -> Option<&'static str> {
-        if !pose.valid {
-            return Some("pose flagged invalid by vision");
+    fn check_pose(&mut self, pose: &Pose, t_ns: u64) -> Option<&'static str> {
+        match self.violations.check(services::POSE, pose.validity()) {
+            Ok(true) => {}
+            Ok(false) => return Some("pose flagged invalid by vision"),
+            Err(_) => return Some("pose validity flag is not 0 or 1"),
         }
         if !pose.is_usable() {
             return Some("pose holds non-finite numbers");
@@ -205,7 +232,7 @@ impl ControlLoop {
         position: &Vector2<f64>,
         heading: f64,
         force: &Vector2<f64>,
-    ) -> [f64; COIL_COUNT] {
+    ) -> [f64; MAX_COILS] {
         let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
         let p3 = Vector3::new(position.x, position.y, 0.0);
         let omega0 = self.config.omega0_n_per_t;
@@ -217,7 +244,7 @@ impl ControlLoop {
         let a = actuation_matrix(&self.coils, &p3, &moment, coil_ids, omega0);
         let b = self.desired_field();
         let c = DVector::from_vec(vec![force.x, force.y, omega0 * b.x, omega0 * b.y]);
-        let mut currents = [0.0; COIL_COUNT];
+        let mut currents = [0.0; MAX_COILS];
         let allocated = if self.config.constrained_allocation {
             let w = self.config.field_row_weight;
             let settings = ConstrainedSettings {
@@ -230,7 +257,9 @@ impl ControlLoop {
         };
         if let Ok(allocated) = allocated {
             for (k, &id) in coil_ids.iter().enumerate() {
-                currents[id] = allocated[k];
+                if let Some(current) = currents.get_mut(id) {
+                    *current = allocated[k];
+                }
             }
         }
         currents
@@ -238,19 +267,13 @@ impl ControlLoop {
 
     /// A safe-state (zero current) command answering `pose`, e.g. when an input is lost.
     pub fn safe(&mut self, pose: &Pose, why: &'static str) -> Decision {
-        let t = pose.capture_time_ns as f64 * 1e-9;
-        let reference = self.reference.sample(t);
+        let reference = self.reference.sample(pose.stamp.capture_time_s());
         self.controller.reset();
         self.last_mode = ControlMode::Safe;
         Decision {
             command: CoilCommand {
-                frame_seq: pose.frame_seq,
-                frame_incarnation: pose.frame_incarnation,
-                capture_time_ns: pose.capture_time_ns,
-                control_incarnation: self.incarnation,
-                controller_id: self.controller.id(),
                 mode: ControlMode::Safe as u32,
-                ..Default::default()
+                ..self.command_for(pose)
             },
             terms: ControlTerms::default(),
             reference_m: reference.position_m,
@@ -261,17 +284,9 @@ impl ControlLoop {
 
     /// One step: the command for `pose` given the flow estimate made for it (if any).
     pub fn step(&mut self, pose: &Pose, flow: Option<&FlowEstimate>) -> Decision {
-        let t_ns = pose.capture_time_ns;
-        let t = t_ns as f64 * 1e-9;
-        let reference = self.reference.sample(t);
-        let mut command = CoilCommand {
-            frame_seq: pose.frame_seq,
-            frame_incarnation: pose.frame_incarnation,
-            capture_time_ns: t_ns,
-            control_incarnation: self.incarnation,
-            controller_id: self.controller.id(),
-            ..Default::default()
-        };
+        let t_ns = pose.stamp.capture_time_ns;
+        let reference = self.reference.sample(pose.stamp.capture_time_s());
+        let mut command = self.command_for(pose);
         let rejected = self.check_pose(pose, t_ns);
         if let Some(why) = rejected {
             let since_good = self
@@ -312,8 +327,9 @@ impl ControlLoop {
             }
         };
         self.last_good = Some((t_ns, position));
-        let (flow_mps, high_disturbance) = match flow {
-            Some(f) if f.valid && f.frame_seq == pose.frame_seq => (
+        let flow_valid = flow.map(|f| self.violations.check(services::FLOW, f.validity()));
+        let (flow_mps, high_disturbance) = match (flow, flow_valid) {
+            (Some(f), Some(Ok(true))) if f.stamp.same_frame(&pose.stamp) => (
                 Vector2::new(f.velocity_mps[0], f.velocity_mps[1]),
                 f.zone_flags & zone::HIGH_DISTURBANCE != 0,
             ),
@@ -382,7 +398,7 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
     recording::scalar(rec, "control/force_des_n/x", d.command.force_des_n[0]);
     recording::scalar(rec, "control/force_des_n/y", d.command.force_des_n[1]);
     recording::scalar(rec, "control/mode", f64::from(d.command.mode));
-    for (i, c) in d.command.currents_a.iter().enumerate() {
+    for (i, c) in d.command.currents().unwrap_or_default().iter().enumerate() {
         recording::scalar(rec, &format!("control/current_a/{i}"), *c);
     }
     let _ = rec.log(
@@ -393,7 +409,7 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
         ]])
         .with_radii([0.8]),
     );
-    if pose.valid {
+    if pose.is_usable() {
         let _ = rec.log(
             "world/robot/heading",
             &rerun::Arrows2D::from_vectors([[
@@ -411,11 +427,11 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
 /// Without flow estimates for this long, control commands the safe state.
 pub const FLOW_LOST_AFTER: Duration = Duration::from_millis(50);
 
-/// Waits (bounded) for the flow estimate made for `frame_seq`.
+/// Waits (bounded) for the flow estimate made for the frame of `stamp`.
 fn flow_for(
     flows: &Inbox<FlowEstimate>,
     cache: &mut Vec<FlowEstimate>,
-    frame_seq: u64,
+    stamp: &FrameStamp,
     timeout: Duration,
 ) -> anyhow::Result<Option<FlowEstimate>> {
     let deadline = Instant::now() + timeout;
@@ -425,7 +441,7 @@ fn flow_for(
         if cache.len() > 16 {
             cache.drain(..cache.len() - 16);
         }
-        if let Some(found) = cache.iter().rev().find(|f| f.frame_seq == frame_seq) {
+        if let Some(found) = cache.iter().rev().find(|f| f.stamp.same_frame(stamp)) {
             return Ok(Some(*found));
         }
         let now = Instant::now();
@@ -499,14 +515,14 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         let flow = flow_for(
             &flows,
             &mut flow_cache,
-            pose.frame_seq,
+            &pose.stamp,
             deadlines::FLOW_FOR_POSE,
         )?;
         if flow.is_none() {
             flow_misses += 1;
             if flow_misses == 1 || flow_misses.is_multiple_of(100) {
                 tracing::warn!(
-                    seq = pose.frame_seq,
+                    seq = pose.stamp.seq,
                     flow_misses,
                     "no flow estimate for pose"
                 );
@@ -521,7 +537,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             control.step(&pose, flow.as_ref())
         };
         commands.send(decision.command)?;
-        recording::set_time(&rt.rec, pose.capture_time_ns, pose.frame_seq);
+        recording::set_time(&rt.rec, pose.stamp.capture_time_ns, pose.stamp.seq);
         log_decision(&rt.rec, &pose, &decision);
     }
     let _ = rt.rec.flush_blocking();
@@ -538,6 +554,7 @@ pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()>
 #[cfg(test)]
 mod tests {
     use super::*;
+    use shm_schemas::Flag;
 
     fn control_loop() -> ControlLoop {
         let reference = Reference::new(&[[-0.018, 0.012], [-0.012, 0.008]], 1e-3, 0.0).unwrap();
@@ -546,12 +563,11 @@ mod tests {
 
     fn pose(seq: u64, t_s: f64, x: f64, y: f64) -> Pose {
         Pose {
-            frame_seq: seq,
-            capture_time_ns: (t_s * 1e9) as u64,
+            stamp: FrameStamp::new(seq, 0, (t_s * 1e9) as u64),
             position_m: [x, y],
             heading_rad: std::f64::consts::FRAC_PI_4,
             confidence: 1.0,
-            valid: true,
+            valid: Flag::TRUE,
             ..Default::default()
         }
     }
@@ -577,8 +593,7 @@ mod tests {
         let d = c.step(&bad, None);
         assert_eq!(mode(&d), ControlMode::Hold);
         assert!(d.rejected.is_some());
-        bad.frame_seq = 2;
-        bad.capture_time_ns = 1_000_000_000;
+        bad.stamp = FrameStamp::new(2, 0, 1_000_000_000);
         let d = c.step(&bad, None);
         assert_eq!(mode(&d), ControlMode::Safe);
         assert!(d.command.currents_a.iter().all(|i| *i == 0.0));
@@ -606,9 +621,52 @@ mod tests {
     fn invalid_flag_is_never_tracked() {
         let mut c = control_loop();
         let mut p = pose(0, 0.0, -0.018, 0.012);
-        p.valid = false;
+        p.valid = Flag::FALSE;
         let d = c.step(&p, None);
         assert_ne!(mode(&d), ControlMode::Track);
+    }
+
+    #[test]
+    fn a_bad_flag_byte_is_invalid_and_counted() {
+        let mut c = control_loop();
+        let mut p = pose(0, 0.0, -0.018, 0.012);
+        p.valid = shm_schemas::Flag::from_raw(0x80);
+        let d = c.step(&p, None);
+        assert_ne!(mode(&d), ControlMode::Track);
+        assert_eq!(d.rejected, Some("pose validity flag is not 0 or 1"));
+        assert_eq!(c.violations.count, 1);
+        // A flow estimate with a bad flag is ignored (no flow used), and counted.
+        let good = pose(1, 0.01, -0.018, 0.012);
+        let flow = FlowEstimate {
+            stamp: good.stamp,
+            velocity_mps: [0.5, 0.5],
+            valid: shm_schemas::Flag::from_raw(9),
+            ..Default::default()
+        };
+        let with_bad_flow = c.step(&good, Some(&flow));
+        assert_eq!(mode(&with_bad_flow), ControlMode::Track);
+        assert_eq!(c.violations.count, 2);
+        let mut fresh = control_loop();
+        let without_flow = fresh.step(&good, None);
+        assert_eq!(
+            with_bad_flow.command.currents_a,
+            without_flow.command.currents_a
+        );
+    }
+
+    #[test]
+    fn commands_carry_the_rig_coil_count_and_stamp() {
+        let mut c = control_loop();
+        let p = pose(4, 0.0, -0.018, 0.012);
+        let d = c.step(&p, None);
+        assert_eq!(d.command.active_coils as usize, c.coil_count());
+        assert_eq!(d.command.currents().unwrap().len(), c.coil_count());
+        assert!(d.command.currents_a[c.coil_count()..]
+            .iter()
+            .all(|i| *i == 0.0));
+        assert_eq!(d.command.stamp, p.stamp);
+        let safe = c.safe(&p, "test");
+        assert_eq!(safe.command.active_coils as usize, c.coil_count());
     }
 
     #[test]
@@ -616,7 +674,7 @@ mod tests {
         let mut c = control_loop();
         let d = c.safe(&pose(5, 0.5, -0.018, 0.012), "flow estimates lost");
         assert_eq!(mode(&d), ControlMode::Safe);
-        assert_eq!(d.command.frame_seq, 5);
+        assert_eq!(d.command.stamp.seq, 5);
         assert!(d.command.currents_a.iter().all(|i| *i == 0.0));
     }
 }

@@ -6,11 +6,12 @@
 
 use std::path::Path;
 
+use fieldmaps::coils::COIL_COUNT;
 use millinav_control::build_loop;
 use millinav_kit::scenario::Scenario;
 use millinav_plant::{build_model, initial_state, PlantConfig};
 use nalgebra::Vector2;
-use shm_schemas::Pose;
+use shm_schemas::{Flag, FrameStamp, Pose};
 
 /// Deterministic Gaussian noise (LCG + Box–Muller), no extra dependency.
 struct Noise(u64);
@@ -77,14 +78,12 @@ pub fn run(controller: &str, waypoints_mm: &[[f64; 2]], speed_mm_s: f64) -> Stat
             state.position_m.y + 5e-5 * noise.gauss(),
         ];
         let pose = Pose {
-            frame_seq: seq,
-            frame_incarnation: 1,
-            capture_time_ns: (t * 1e9).round() as u64,
+            stamp: FrameStamp::new(seq, 1, (t * 1e9).round() as u64),
             position_m: position,
             heading_rad: state.heading_rad + 1f64.to_radians() * noise.gauss(),
             centroid_m: position,
             confidence: 1.0,
-            valid: true,
+            valid: Flag::TRUE,
             ..Default::default()
         };
         let decision = control.step(&pose, None);
@@ -104,7 +103,13 @@ pub fn run(controller: &str, waypoints_mm: &[[f64; 2]], speed_mm_s: f64) -> Stat
             last = (state.position_m - reference).norm() * 1e3;
             errors.push(last);
         }
-        model.step(&mut state, &decision.command.currents_a, dt);
+        let currents: [f64; COIL_COUNT] = decision
+            .command
+            .currents()
+            .expect("a well-formed command")
+            .try_into()
+            .expect("one current per coil of the twin");
+        model.step(&mut state, &currents, dt);
     }
     let n = errors.len() as f64;
     let rmse_mm = (errors.iter().map(|e| e * e).sum::<f64>() / n).sqrt();
@@ -152,7 +157,10 @@ fn check(controller: &str, rmse_bound_mm: f64, max_bound_mm: f64) {
         assert_eq!(s.rejected, 0, "{controller} {path}: poses rejected");
         assert!(s.rmse_mm < rmse_bound_mm, "{controller} {path}: {s:?}");
         assert!(s.max_mm < max_bound_mm, "{controller} {path}: {s:?}");
-        assert!(s.final_mm < max_bound_mm, "{controller} {path}: {s:?}");
+        // Settled: 2 s after the reference stops, the robot sits at the end within the
+        // controller's RMSE bound (a final error under the max bound is implied by the line
+        // above and checks nothing).
+        assert!(s.final_mm < rmse_bound_mm, "{controller} {path}: {s:?}");
     }
 }
 

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use fieldmaps::flowmap::FlowMap;
+use millinav_kit::contract::ContractViolations;
 use millinav_kit::iceoryx2::prelude::*;
 use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
 use millinav_kit::ports::{Inbox, Outbox};
@@ -15,7 +16,7 @@ use millinav_kit::scenario::Scenario;
 use millinav_kit::Runtime;
 use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
-use shm_schemas::{deadlines, services, zone, FlowEstimate, Pose};
+use shm_schemas::{deadlines, services, zone, Flag, FlowEstimate, Pose};
 
 /// `[flow]` section of a scenario.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -63,11 +64,11 @@ impl FlowEstimator {
 
     pub fn estimate(&self, pose: &Pose) -> FlowEstimate {
         let mut estimate = FlowEstimate {
-            frame_seq: pose.frame_seq,
-            frame_incarnation: pose.frame_incarnation,
-            capture_time_ns: pose.capture_time_ns,
+            stamp: pose.stamp,
             ..Default::default()
         };
+        // A pose flagged invalid, with a bad flag byte or non-finite numbers gets an invalid
+        // estimate (still sent: control waits for the estimate of every pose).
         if !pose.is_usable() {
             return estimate;
         }
@@ -101,7 +102,7 @@ impl FlowEstimator {
         estimate.velocity_mps = [v.x, v.y];
         estimate.speed_mps = v.norm();
         estimate.zone_flags = flags;
-        estimate.valid = true;
+        estimate.valid = Flag::TRUE;
         estimate
     }
 
@@ -149,6 +150,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     estimator.log_field(&rt.rec);
     let poses = Inbox::<Pose>::new(&rt.node, services::POSE)?;
     let estimates = Outbox::<FlowEstimate>::new(&rt.node, services::FLOW)?;
+    let mut violations = ContractViolations::default();
     let waitset = WaitSetBuilder::new()
         .create::<ipc::Service>()
         .map_err(millinav_kit::iox("waitset"))?;
@@ -185,10 +187,11 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         rt.heartbeat.update_connections();
         // Every pose gets its estimate: control waits for the one matching its pose.
         for pose in poses.receive_all()? {
+            let _ = violations.check(services::POSE, pose.validity());
             let estimate = estimator.estimate(&pose);
             estimates.send(estimate)?;
-            if estimate.valid {
-                recording::set_time(&rt.rec, pose.capture_time_ns, pose.frame_seq);
+            if estimate.valid == Flag::TRUE {
+                recording::set_time(&rt.rec, pose.stamp.capture_time_ns, pose.stamp.seq);
                 let _ = rt.rec.log(
                     "world/flow_at_robot",
                     &rerun::Arrows2D::from_vectors([[
@@ -224,19 +227,24 @@ mod tests {
     fn invalid_pose_gets_invalid_estimate() {
         let est = FlowEstimator::new(FlowMap::zero(), FlowConfig::default());
         let pose = Pose {
-            valid: true,
+            valid: Flag::TRUE,
             position_m: [f64::NAN, 0.0],
             ..Default::default()
         };
-        assert!(!est.estimate(&pose).valid);
+        assert_eq!(est.estimate(&pose).validity(), Ok(false));
+        let bad_flag = Pose {
+            valid: Flag::from_raw(0x2A),
+            ..Default::default()
+        };
+        assert_eq!(est.estimate(&bad_flag).validity(), Ok(false));
         let ok = Pose {
-            valid: true,
-            frame_seq: 7,
+            valid: Flag::TRUE,
+            stamp: shm_schemas::FrameStamp::new(7, 2, 70),
             ..Default::default()
         };
         let e = est.estimate(&ok);
-        assert!(e.valid);
-        assert_eq!(e.frame_seq, 7);
+        assert_eq!(e.validity(), Ok(true));
+        assert_eq!(e.stamp, ok.stamp);
         assert_eq!(e.zone_flags, 0);
     }
 
@@ -250,7 +258,7 @@ mod tests {
         let est = FlowEstimator::new(map, FlowConfig::default());
         let flags = |x_mm: f64, y_mm: f64| {
             est.estimate(&Pose {
-                valid: true,
+                valid: Flag::TRUE,
                 position_m: [x_mm * 1e-3, y_mm * 1e-3],
                 ..Default::default()
             })

@@ -2,6 +2,7 @@
 //! one set of QoS settings, heartbeats, the run clock, and the Rerun stream of the run.
 
 pub mod clock;
+pub mod contract;
 pub mod ports;
 pub mod recording;
 pub mod scenario;
@@ -46,6 +47,13 @@ pub enum KitError {
     },
     #[error("iceoryx2: {0}")]
     Iceoryx(String),
+    #[error(
+        "service {service}: the peer that created it speaks another contract version or payload \
+         type (this process expects {expected:?}, millinav contract v{version}); rebuild or \
+         restart every process of the set from the same version",
+        version = shm_schemas::CONTRACT_VERSION
+    )]
+    ContractMismatch { service: String, expected: String },
     #[error("rerun: {0}")]
     Rerun(String),
     #[error("io: {0}")]

@@ -14,6 +14,9 @@ use iceoryx2::sample::Sample;
 use shm_schemas::{deadlines, services, FrameHeader, Heartbeat, ServiceId, FRAME_BYTES};
 
 use crate::{iox, KitError};
+use iceoryx2::service::builder::publish_subscribe::{
+    PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
+};
 
 /// Samples a slow subscriber may queue before the oldest is overwritten (latest wins).
 const SUBSCRIBER_BUFFER: usize = 4;
@@ -23,6 +26,29 @@ const MAX_NODES: usize = 32;
 
 fn service_name(name: &str) -> Result<ServiceName, KitError> {
     ServiceName::new(name).map_err(iox("service name"))
+}
+
+/// iceoryx2's name of the type `T` in shared memory (the contract's versioned type name).
+fn type_name_of<T: ZeroCopySend + ?Sized>() -> String {
+    // SAFETY: only reads the name; every contract payload pins its layout at compile time.
+    unsafe { <T as ZeroCopySend>::type_name() }.to_owned()
+}
+
+/// Maps a failure to open `service`; a payload or header type that does not match the
+/// existing service (another contract version, or another type) becomes `ContractMismatch`.
+fn open_error(
+    service: &str,
+    expected: String,
+) -> impl FnOnce(PublishSubscribeOpenOrCreateError) -> KitError + '_ {
+    move |e| match e {
+        PublishSubscribeOpenOrCreateError::PublishSubscribeOpenError(
+            PublishSubscribeOpenError::IncompatibleTypes,
+        ) => KitError::ContractMismatch {
+            service: service.to_owned(),
+            expected,
+        },
+        other => iox(service)(other),
+    }
 }
 
 /// Opens (or creates) the event service that announces samples on `data_service`.
@@ -56,7 +82,7 @@ fn open_pubsub<T: Debug + ZeroCopySend + 'static>(
         .max_subscribers(MAX_SUBSCRIBERS)
         .max_nodes(MAX_NODES)
         .open_or_create()
-        .map_err(iox(name))
+        .map_err(open_error(name, type_name_of::<T>()))
 }
 
 /// Publishes fixed-size messages and announces each one.
@@ -163,7 +189,10 @@ fn open_frame_service(
         .max_subscribers(MAX_SUBSCRIBERS)
         .max_nodes(MAX_NODES)
         .open_or_create()
-        .map_err(iox(services::FRAME))
+        .map_err(open_error(
+            services::FRAME,
+            format!("[u8] with user header {}", type_name_of::<FrameHeader>()),
+        ))
 }
 
 impl FrameOutbox {

@@ -41,6 +41,9 @@ pub struct RunSection {
     /// Camera frame period.
     #[serde(default = "default_frame_period_ms")]
     pub frame_period_ms: f64,
+    /// Rig file the run uses (see [`Scenario::rig_path`]); none means the paper rig.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rig: Option<PathBuf>,
 }
 
 fn default_seed() -> u64 {
@@ -197,6 +200,24 @@ impl Scenario {
             .collect()
     }
 
+    /// The rig file this scenario runs on. `[run] rig` when given: absolute as is, else
+    /// relative to the repository root (`fieldmaps::data_root`, like other committed data) when
+    /// it exists there, else relative to the scenario file. Without it, the paper rig
+    /// (`fieldmaps/rigs/paper.toml` under the repository root).
+    pub fn rig_path(&self) -> PathBuf {
+        let Some(rig) = &self.run.rig else {
+            return fieldmaps::rigfile::paper_rig_path();
+        };
+        if rig.is_absolute() {
+            return rig.clone();
+        }
+        let from_root = fieldmaps::data_root().join(rig);
+        if from_root.exists() {
+            return from_root;
+        }
+        self.resolve(rig)
+    }
+
     /// Resolves a path written in the scenario relative to the scenario file's directory.
     pub fn resolve(&self, relative: &Path) -> PathBuf {
         if relative.is_absolute() {
@@ -236,6 +257,41 @@ controller = "pid"
         }
         let c: C = s.section("control").unwrap();
         assert_eq!(c.controller, "pid");
+    }
+
+    #[test]
+    fn rig_defaults_to_the_paper_rig_and_resolves_like_committed_data() {
+        let s = Scenario::parse(GOOD, Path::new("/somewhere/x.toml")).unwrap();
+        assert_eq!(s.run.rig, None);
+        let paper = s.rig_path();
+        assert!(
+            paper.ends_with("fieldmaps/rigs/paper.toml"),
+            "{}",
+            paper.display()
+        );
+        assert!(paper.is_file(), "{}", paper.display());
+
+        let named = GOOD.replace(
+            "duration_s = 5.0",
+            "duration_s = 5.0\nrig = \"fieldmaps/rigs/paper.toml\"",
+        );
+        let s = Scenario::parse(&named, Path::new("/somewhere/x.toml")).unwrap();
+        assert_eq!(s.rig_path(), paper);
+
+        // Not in the repository: next to the scenario.
+        let own = GOOD.replace(
+            "duration_s = 5.0",
+            "duration_s = 5.0\nrig = \"rigs/mine.toml\"",
+        );
+        let s = Scenario::parse(&own, Path::new("/somewhere/x.toml")).unwrap();
+        assert_eq!(s.rig_path(), Path::new("/somewhere/rigs/mine.toml"));
+
+        let absolute = GOOD.replace(
+            "duration_s = 5.0",
+            "duration_s = 5.0\nrig = \"/labs/r.toml\"",
+        );
+        let s = Scenario::parse(&absolute, Path::new("x.toml")).unwrap();
+        assert_eq!(s.rig_path(), Path::new("/labs/r.toml"));
     }
 
     #[test]

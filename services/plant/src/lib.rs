@@ -12,6 +12,7 @@ pub mod trueflow;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use fieldmaps::coils::COIL_COUNT;
 use fieldmaps::flowmap::FlowMap;
 use fieldmaps::phantom::{ImageGeometry, Phantom};
 use fieldmaps::rig::{FluidParams, RobotParams};
@@ -22,7 +23,8 @@ use millinav_kit::Runtime;
 use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
 use shm_schemas::{
-    deadlines, services, FrameHeader, PixelFormat, PlantTruth, COIL_COUNT, FRAME_CHANNELS,
+    deadlines, services, Flag, FrameHeader, FrameStamp, PixelFormat, PlantTruth, FRAME_CHANNELS,
+    MAX_COILS,
 };
 
 use crate::model::{PlantModel, PlantPhysicsConfig, PlantState};
@@ -139,6 +141,25 @@ pub fn initial_state(scenario: &Scenario, config: &PlantConfig, model: &PlantMod
     )
 }
 
+// The twin's coils must fit the contract's coil arrays.
+const _: () = assert!(COIL_COUNT <= MAX_COILS);
+
+/// The twin's coil currents in a contract coil array (the rest zero).
+fn coil_array(currents_a: &[f64; COIL_COUNT]) -> [f64; MAX_COILS] {
+    let mut out = [0.0; MAX_COILS];
+    out[..COIL_COUNT].copy_from_slice(currents_a);
+    out
+}
+
+/// The board's channel currents as the twin's coil currents (missing channels drive nothing).
+fn twin_currents(board_a: &[f64]) -> [f64; COIL_COUNT] {
+    let mut out = [0.0; COIL_COUNT];
+    for (twin, board) in out.iter_mut().zip(board_a) {
+        *twin = *board;
+    }
+    out
+}
+
 fn truth_of(state: &PlantState, frame_seq: u64, misses: u64) -> PlantTruth {
     PlantTruth {
         frame_seq,
@@ -147,10 +168,12 @@ fn truth_of(state: &PlantState, frame_seq: u64, misses: u64) -> PlantTruth {
         velocity_mps: [state.velocity_mps.x, state.velocity_mps.y],
         heading_rad: state.heading_rad,
         true_flow_mps: [state.last_true_flow_mps.x, state.last_true_flow_mps.y],
-        applied_currents_a: state.coil_currents_a,
+        applied_currents_a: coil_array(&state.coil_currents_a),
         magnetic_force_n: [state.last_magnetic_force_n.x, state.last_magnetic_force_n.y],
-        wall_contact: state.wall_contact,
         lockstep_misses: misses,
+        active_coils: COIL_COUNT as u32,
+        wall_contact: Flag::from(state.wall_contact),
+        reserved: [0; 3],
     }
 }
 
@@ -210,6 +233,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             .join(millinav_teensy_protocol::EMULATED_PORT_LINK),
         &rt.env.run_dir.join("teensy_events.csv"),
         deadlines::TEENSY_WATCHDOG,
+        COIL_COUNT,
     )
     .context("starting the emulated Teensy")?;
     // iceoryx2 takes over every catchable signal the first time it checks for termination;
@@ -244,17 +268,14 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                    run_time_ns: u64|
      -> anyhow::Result<()> {
         let header = FrameHeader {
-            seq,
-            incarnation,
-            capture_time_ns: run_time_ns,
+            stamp: FrameStamp::new(seq, incarnation, run_time_ns),
             width: geometry.width_px,
             height: geometry.height_px,
             stride: geometry.width_px * FRAME_CHANNELS,
             pixel_format: PixelFormat::Rgb8 as u32,
-            mm_per_px: geometry.mm_per_px,
-            origin_x_mm: geometry.origin_x_mm,
-            origin_y_mm: geometry.origin_y_mm,
-        };
+            ..Default::default()
+        }
+        .with_mapping(geometry.pixel_mapping());
         let mut rng = rng_streams::frame_noise_rng(scenario.run.seed, seq);
         let capsule = CapsulePose {
             position_m: shown.position_m,
@@ -344,9 +365,9 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                 if in_time {
                     // The command that answered this frame, even if a safe-zero keep-alive
                     // raced in after it: the step must not depend on wall-clock timing.
-                    outputs.last_command_currents_a
+                    twin_currents(outputs.last_command_currents())
                 } else {
-                    outputs.currents_a
+                    twin_currents(outputs.currents())
                 }
             }
             ClockMode::Realtime => {
@@ -354,7 +375,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                 if let Some(wait) = next.checked_duration_since(Instant::now()) {
                     std::thread::sleep(wait);
                 }
-                teensy.outputs().currents_a
+                twin_currents(teensy.outputs().currents())
             }
         };
         model.step(&mut state, &commanded, frame_period);
@@ -404,7 +425,7 @@ impl TruthCsv {
             t.heading_rad,
             t.true_flow_mps[0],
             t.true_flow_mps[1],
-            u8::from(t.wall_contact),
+            t.wall_contact.raw(),
             max_current,
             t.lockstep_misses,
             sum_sq_current

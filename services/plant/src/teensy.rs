@@ -5,9 +5,12 @@
 //! observe exactly when currents reached zero.
 //!
 //! It can also be told to suffer a link fault (`LinkFault`): a pulled USB cable (the device node
-//! vanishes, the unpowered board drives nothing) or a firmware stall (nothing read or sent; the
-//! board's hardware watchdog resets it, zeroing its outputs). The plant maps SIGUSR1/SIGUSR2 to
-//! these so fault-injection tests can hit the link like any other service.
+//! vanishes; the board stays powered from its own supply and keeps driving its last currents
+//! until its watchdog zeroes them) or a firmware stall (nothing read or sent; the board's
+//! hardware watchdog resets it, zeroing its outputs). Every zeroing the board does on its own is
+//! logged with its time (`watchdog_zero`, `hw_watchdog_reset`), so a test measures time to safe
+//! state at the board's zero. The plant maps SIGUSR1/SIGUSR2 to these so fault-injection tests
+//! can hit the link like any other service.
 
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
@@ -17,10 +20,10 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use millinav_teensy_protocol::{
-    encode, ma_to_amps, AckStatus, Decoder, Message, Packet, FLAG_SAFE_ZERO,
+    amps_to_ma, encode, ma_to_amps, AckStatus, CoilValues, Decoder, Message, Packet, FLAG_SAFE_ZERO,
 };
 use serialport::{SerialPort, TTYPort};
-use shm_schemas::{COIL_COUNT, NO_FRAME};
+use shm_schemas::{MAX_COILS, NO_FRAME};
 
 /// The board's own per-channel limit (the Roboclaw channels), independent of coilbus.
 const HARDWARE_LIMIT_A: f64 = 30.0;
@@ -31,8 +34,10 @@ const REPLUG_RETRY: Duration = Duration::from_millis(100);
 /// A fault of the serial link, injected on purpose.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LinkFault {
-    /// USB cable pulled for this long: the device node disappears and the unpowered board
-    /// drives zero current; then it is plugged back in under the same link path.
+    /// USB cable pulled for this long: the device node disappears; the board keeps running on
+    /// its own supply (the worst case: a board powered from USB alone would go dark at once),
+    /// holds its last currents and zeroes them when its watchdog expires; then it is plugged
+    /// back in under the same link path.
     Unplug(Duration),
     /// Firmware stalls for this long: nothing is read, applied or sent. After the watchdog
     /// period the hardware watchdog resets the board (outputs zero); it boots with an empty
@@ -40,17 +45,37 @@ pub enum LinkFault {
     Hang(Duration),
 }
 
-/// What the emulated board currently drives, shared with the plant loop.
+/// Log the first rejected frame and then every this many (a wrong rig rejects every frame).
+const REJECTION_LOG_EVERY: u64 = 100;
+
+/// What the emulated board currently drives, shared with the plant loop. Coil arrays hold the
+/// board's `coil_count` channels first; the rest stay zero.
 #[derive(Debug, Clone)]
 pub struct TeensyOutputs {
-    pub currents_a: [f64; COIL_COUNT],
+    /// Channels of the board: a `SetCurrents` for another count is rejected.
+    pub coil_count: usize,
+    pub currents_a: [f64; MAX_COILS],
     /// Currents of the newest controller command (not a safe-zero, not the watchdog).
-    pub last_command_currents_a: [f64; COIL_COUNT],
+    pub last_command_currents_a: [f64; MAX_COILS],
     /// Frame of the newest controller command applied (`NO_FRAME` for none).
     pub last_command_frame: u64,
     pub watchdog_tripped: bool,
     pub frames_received: u64,
     pub rx_errors: u64,
+    /// `SetCurrents` frames refused because their coil count is not the board's.
+    pub rejected_frames: u64,
+}
+
+impl TeensyOutputs {
+    /// The currents the board's channels drive.
+    pub fn currents(&self) -> &[f64] {
+        &self.currents_a[..self.coil_count]
+    }
+
+    /// The currents of the newest controller command, one per channel.
+    pub fn last_command_currents(&self) -> &[f64] {
+        &self.last_command_currents_a[..self.coil_count]
+    }
 }
 
 struct Shared {
@@ -67,8 +92,17 @@ pub struct EmulatedTeensy {
 }
 
 impl EmulatedTeensy {
-    /// Creates the pty pair, links its slave to `link_path`, and starts serving.
-    pub fn start(link_path: &Path, events_path: &Path, watchdog: Duration) -> anyhow::Result<Self> {
+    /// Creates the pty pair, links its slave to `link_path`, and starts serving a board with
+    /// `coil_count` channels (1 to `MAX_COILS`).
+    pub fn start(
+        link_path: &Path,
+        events_path: &Path,
+        watchdog: Duration,
+        coil_count: usize,
+    ) -> anyhow::Result<Self> {
+        if coil_count == 0 || coil_count > MAX_COILS {
+            anyhow::bail!("emulated Teensy: {coil_count} channels, must be 1 to {MAX_COILS}");
+        }
         let mut pty = Pty::plug_in(link_path)?;
         let mut events = std::fs::File::create(events_path)?;
         writeln!(
@@ -78,12 +112,14 @@ impl EmulatedTeensy {
 
         let shared = Arc::new(Shared {
             outputs: Mutex::new(TeensyOutputs {
-                currents_a: [0.0; COIL_COUNT],
-                last_command_currents_a: [0.0; COIL_COUNT],
+                coil_count,
+                currents_a: [0.0; MAX_COILS],
+                last_command_currents_a: [0.0; MAX_COILS],
                 last_command_frame: NO_FRAME,
                 watchdog_tripped: true,
                 frames_received: 0,
                 rx_errors: 0,
+                rejected_frames: 0,
             }),
             command_arrived: Condvar::new(),
             stop: AtomicBool::new(false),
@@ -93,31 +129,48 @@ impl EmulatedTeensy {
         let thread_link = link_path.to_owned();
         let thread = std::thread::Builder::new()
             .name("teensy".into())
-            .spawn(move || loop {
-                let unplugged_for =
-                    match serve(&mut pty.master, &thread_shared, &mut events, watchdog) {
+            .spawn(move || {
+                // When the last frame arrived; the board's watchdog runs from it, plugged in or not.
+                let mut last_rx: Option<Instant> = None;
+                loop {
+                    let unplugged_for = match serve(
+                        &mut pty.master,
+                        &thread_shared,
+                        &mut events,
+                        watchdog,
+                        &mut last_rx,
+                    ) {
                         Served::Stopped => return,
                         Served::Unplugged(duration) => duration,
                     };
-                drop(pty);
-                let _ = std::fs::remove_file(&thread_link);
-                power_off(&thread_shared, &mut events, "unplugged");
-                tracing::warn!("emulated Teensy unplugged for {unplugged_for:?}");
-                if !sleep_unless_stopped(&thread_shared, unplugged_for) {
-                    return;
-                }
-                pty = loop {
-                    match Pty::plug_in(&thread_link) {
-                        Ok(pty) => break pty,
-                        Err(e) => {
-                            tracing::error!("emulated Teensy cannot re-create its pty: {e:#}");
-                            if !sleep_unless_stopped(&thread_shared, REPLUG_RETRY) {
-                                return;
+                    drop(pty);
+                    let _ = std::fs::remove_file(&thread_link);
+                    let held = lock(&thread_shared).currents_a;
+                    log_event(&mut events, NO_FRAME, 0, &held, "unplugged");
+                    tracing::warn!("emulated Teensy unplugged for {unplugged_for:?}");
+                    if !run_unplugged(
+                        &thread_shared,
+                        &mut events,
+                        watchdog,
+                        last_rx,
+                        unplugged_for,
+                    ) {
+                        return;
+                    }
+                    pty = loop {
+                        match Pty::plug_in(&thread_link) {
+                            Ok(pty) => break pty,
+                            Err(e) => {
+                                tracing::error!("emulated Teensy cannot re-create its pty: {e:#}");
+                                if !sleep_unless_stopped(&thread_shared, REPLUG_RETRY) {
+                                    return;
+                                }
                             }
                         }
-                    }
-                };
-                log_event(&mut events, NO_FRAME, 0, &[0.0], "replugged");
+                    };
+                    let outputs = lock(&thread_shared).currents_a;
+                    log_event(&mut events, NO_FRAME, 0, &outputs, "replugged");
+                }
             })?;
         Ok(Self {
             shared,
@@ -209,10 +262,51 @@ impl Pty {
 fn power_off(shared: &Shared, events: &mut std::fs::File, event: &str) {
     {
         let mut out = lock(shared);
-        out.currents_a = [0.0; COIL_COUNT];
+        out.currents_a = [0.0; MAX_COILS];
         out.watchdog_tripped = true;
     }
     log_event(events, NO_FRAME, 0, &[0.0], event);
+}
+
+/// The board's own watchdog: once no frame came for `watchdog` it zeroes the outputs and logs
+/// `watchdog_zero` (once per trip).
+fn check_watchdog(
+    shared: &Shared,
+    events: &mut std::fs::File,
+    last_rx: Option<Instant>,
+    now: Instant,
+    watchdog: Duration,
+) {
+    let mut out = lock(shared);
+    let expired = last_rx.is_none_or(|t| now.duration_since(t) > watchdog);
+    if expired && !out.watchdog_tripped {
+        out.watchdog_tripped = true;
+        out.currents_a = [0.0; MAX_COILS];
+        log_event(events, NO_FRAME, 0, &[0.0], "watchdog_zero");
+        tracing::warn!("emulated Teensy watchdog: no frame for {watchdog:?}, PWM zeroed");
+    }
+}
+
+/// Cable out for `duration`: nothing arrives, the firmware keeps running and its watchdog
+/// zeroes the held currents. False when the board was stopped meanwhile.
+fn run_unplugged(
+    shared: &Shared,
+    events: &mut std::fs::File,
+    watchdog: Duration,
+    last_rx: Option<Instant>,
+    duration: Duration,
+) -> bool {
+    let until = Instant::now() + duration;
+    loop {
+        let now = Instant::now();
+        check_watchdog(shared, events, last_rx, now, watchdog);
+        if now >= until {
+            return true;
+        }
+        if !sleep_unless_stopped(shared, Duration::from_millis(5).min(until - now)) {
+            return false;
+        }
+    }
 }
 
 /// Sleeps `duration` in short steps; false when the board was stopped meanwhile.
@@ -238,7 +332,8 @@ fn stall(
     duration: Duration,
 ) -> bool {
     let started = Instant::now();
-    log_event(events, NO_FRAME, 0, &lock(shared).currents_a, "hang");
+    let driving = lock(shared).currents_a;
+    log_event(events, NO_FRAME, 0, &driving, "hang");
     tracing::warn!("emulated Teensy firmware stalled for {duration:?}");
     if duration <= watchdog {
         return sleep_unless_stopped(shared, duration);
@@ -253,6 +348,65 @@ fn stall(
     let _ = port.clear(serialport::ClearBuffer::Input);
     log_event(events, NO_FRAME, 0, &[0.0], "rebooted");
     true
+}
+
+/// Applies one `SetCurrents` as the board does: a frame for another coil count than the
+/// board's channels is refused (nothing applied, outputs unchanged, logged and counted); else
+/// each channel is clamped to the hardware limit and driven.
+fn apply_set_currents(
+    shared: &Shared,
+    events: &mut std::fs::File,
+    frame_seq: u64,
+    flags: u8,
+    currents_ma: &CoilValues,
+) -> AckStatus {
+    let coil_count = lock(shared).coil_count;
+    if currents_ma.len() != coil_count {
+        let rejected = {
+            let mut out = lock(shared);
+            out.rejected_frames += 1;
+            out.rejected_frames
+        };
+        log_event(events, frame_seq, flags, &[0.0], "rejected_coil_count");
+        if rejected == 1 || rejected.is_multiple_of(REJECTION_LOG_EVERY) {
+            tracing::error!(
+                rejected,
+                "emulated Teensy rejected a frame for {} coils: the board has {coil_count} \
+                 channels; nothing applied",
+                currents_ma.len()
+            );
+        }
+        return AckStatus::RejectedCoilCount;
+    }
+    let mut clamped = false;
+    let mut currents = [0.0; MAX_COILS];
+    for (current, ma) in currents.iter_mut().zip(currents_ma.as_slice()) {
+        let a = ma_to_amps(*ma);
+        clamped |= a.abs() > HARDWARE_LIMIT_A;
+        *current = a.clamp(-HARDWARE_LIMIT_A, HARDWARE_LIMIT_A);
+    }
+    let event = if flags & FLAG_SAFE_ZERO != 0 {
+        "safe_zero"
+    } else {
+        "command"
+    };
+    log_event(events, frame_seq, flags, &currents, event);
+    {
+        let mut out = lock(shared);
+        out.currents_a = currents;
+        out.watchdog_tripped = false;
+        out.frames_received += 1;
+        if flags & FLAG_SAFE_ZERO == 0 {
+            out.last_command_frame = frame_seq;
+            out.last_command_currents_a = currents;
+        }
+    }
+    shared.command_arrived.notify_all();
+    if clamped {
+        AckStatus::Clamped
+    } else {
+        AckStatus::Applied
+    }
 }
 
 enum Served {
@@ -283,10 +437,10 @@ fn serve(
     shared: &Shared,
     events: &mut std::fs::File,
     watchdog: Duration,
+    last_rx: &mut Option<Instant>,
 ) -> Served {
     let mut decoder = Decoder::new();
     let mut buf = [0u8; 1024];
-    let mut last_rx: Option<Instant> = None;
     let mut last_telemetry = Instant::now();
     let mut tx_seq = 0u32;
     while !shared.stop.load(Ordering::Relaxed) {
@@ -303,7 +457,7 @@ fn serve(
                 }
                 // A reset board starts from scratch.
                 decoder = Decoder::new();
-                last_rx = None;
+                *last_rx = None;
                 continue;
             }
             None => {}
@@ -327,36 +481,11 @@ fn serve(
             else {
                 continue;
             };
-            last_rx = Some(now);
-            let mut clamped = false;
-            let currents = currents_ma.map(|ma| {
-                let a = ma_to_amps(ma);
-                clamped |= a.abs() > HARDWARE_LIMIT_A;
-                a.clamp(-HARDWARE_LIMIT_A, HARDWARE_LIMIT_A)
-            });
-            let event = if flags & FLAG_SAFE_ZERO != 0 {
-                "safe_zero"
-            } else {
-                "command"
-            };
-            log_event(events, frame_seq, flags, &currents, event);
-            {
-                let mut out = lock(shared);
-                out.currents_a = currents;
-                out.watchdog_tripped = false;
-                out.frames_received += 1;
-                if flags & FLAG_SAFE_ZERO == 0 {
-                    out.last_command_frame = frame_seq;
-                    out.last_command_currents_a = currents;
-                }
+            let status = apply_set_currents(shared, events, frame_seq, flags, &currents_ma);
+            if status != AckStatus::RejectedCoilCount {
+                *last_rx = Some(now);
             }
-            shared.command_arrived.notify_all();
             tx_seq = tx_seq.wrapping_add(1);
-            let status = if clamped {
-                AckStatus::Clamped
-            } else {
-                AckStatus::Applied
-            };
             let ack = encode(&Packet {
                 seq: tx_seq,
                 message: Message::Ack {
@@ -366,25 +495,19 @@ fn serve(
             });
             let _ = port.write_all(&ack);
         }
-        {
-            let mut out = lock(shared);
-            out.rx_errors = decoder.counters.errors();
-            let expired = last_rx.is_none_or(|t| now.duration_since(t) > watchdog);
-            if expired && !out.watchdog_tripped {
-                out.watchdog_tripped = true;
-                out.currents_a = [0.0; COIL_COUNT];
-                log_event(events, NO_FRAME, 0, &[0.0], "watchdog_zero");
-                tracing::warn!("emulated Teensy watchdog: no frame for {watchdog:?}, PWM zeroed");
-            }
-        }
+        lock(shared).rx_errors = decoder.counters.errors();
+        check_watchdog(shared, events, *last_rx, now, watchdog);
         if now.duration_since(last_telemetry) >= TELEMETRY_PERIOD {
             last_telemetry = now;
             let out = lock(shared).clone();
+            let applied_ma: Vec<i32> = out.currents().iter().map(|a| amps_to_ma(*a)).collect();
+            // `coil_count` ≤ MAX_COILS is checked in `start`.
+            let applied_ma = CoilValues::new(&applied_ma).unwrap_or_else(|| CoilValues::zeros(0));
             tx_seq = tx_seq.wrapping_add(1);
             let telemetry = encode(&Packet {
                 seq: tx_seq,
                 message: Message::Telemetry {
-                    applied_ma: out.currents_a.map(millinav_teensy_protocol::amps_to_ma),
+                    applied_ma,
                     watchdog_tripped: out.watchdog_tripped,
                     rx_errors: out.rx_errors.min(u32::MAX as u64) as u32,
                     frames_received: (out.frames_received & u32::MAX as u64) as u32,

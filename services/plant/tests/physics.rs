@@ -242,6 +242,24 @@ fn true_flow_is_steady_times_pulsation_plus_disturbances() {
         (mean - steady).norm() < 1e-3 * steady.norm(),
         "{mean} vs {steady}"
     );
+    // ... and it pulses: along the steady direction, from its trough up to 1 + amplitude.
+    let amplitude = PlantPhysicsConfig::default().pulsation_amplitude;
+    assert!(amplitude > 0.0);
+    let factors: Vec<f64> = (0..n)
+        .map(|k| {
+            let v = plain.true_flow(&p, k as f64 / (3.0 * n as f64));
+            assert!(v.perp(&steady).abs() < 1e-9 * steady.norm_squared());
+            v.dot(&steady) / steady.norm_squared()
+        })
+        .collect();
+    let peak = factors.iter().cloned().fold(f64::MIN, f64::max);
+    let trough = factors.iter().cloned().fold(f64::MAX, f64::min);
+    assert!(
+        (peak - (1.0 + amplitude)).abs() < 1e-3,
+        "peak factor {peak}, expected {}",
+        1.0 + amplitude
+    );
+    assert!(trough < 1.0 - 0.5 * amplitude, "trough factor {trough}");
     // The vortex changes the flow in the band, not below it.
     assert!((full.true_flow(&p, 0.4) - plain.true_flow(&p, 0.4)).norm() > 1e-5);
     assert_eq!(full.true_flow(&q, 0.4), plain.true_flow(&q, 0.4));

@@ -3,16 +3,16 @@
 
 use std::time::{Duration, Instant};
 
+use fieldmaps::coils::COIL_COUNT;
 use millinav_coilbus::link::SerialLink;
-use millinav_coilbus::protocol::{amps_to_ma, Message};
-use millinav_plant::teensy::EmulatedTeensy;
-use shm_schemas::COIL_COUNT;
+use millinav_coilbus::protocol::{amps_to_ma, CoilValues, Message};
+use millinav_plant::teensy::{EmulatedTeensy, LinkFault};
 
 fn command(frame_seq: u64, amps: f64) -> Message {
     Message::SetCurrents {
         frame_seq,
         flags: 0,
-        currents_ma: [amps_to_ma(amps); COIL_COUNT],
+        currents_ma: CoilValues::new(&[amps_to_ma(amps); COIL_COUNT]).unwrap(),
     }
 }
 
@@ -25,7 +25,7 @@ fn deliver(link: &mut SerialLink, teensy: &EmulatedTeensy, frame_seq: u64, amps:
         if link.send(&command(frame_seq, amps)) {
             let (out, in_time) = teensy.wait_for_frame(frame_seq, Duration::from_millis(50));
             if in_time {
-                assert_eq!(out.last_command_currents_a, [amps; COIL_COUNT]);
+                assert_eq!(out.last_command_currents(), [amps; COIL_COUNT]);
                 return true;
             }
         }
@@ -41,7 +41,8 @@ fn serial_link_reconnects_when_the_port_comes_back() {
     let link_path = dir.join("teensy.pty");
     let watchdog = Duration::from_millis(250);
 
-    let first = EmulatedTeensy::start(&link_path, &dir.join("events1.csv"), watchdog).unwrap();
+    let first =
+        EmulatedTeensy::start(&link_path, &dir.join("events1.csv"), watchdog, COIL_COUNT).unwrap();
     let mut link = SerialLink::new(link_path.clone(), 115_200);
     assert!(
         deliver(&mut link, &first, 1, 1.5),
@@ -68,10 +69,73 @@ fn serial_link_reconnects_when_the_port_comes_back() {
     assert!(!link.is_open(), "opened a port that does not exist");
 
     // A new board at the same path: the link reopens on its own and commands flow again.
-    let second = EmulatedTeensy::start(&link_path, &dir.join("events2.csv"), watchdog).unwrap();
+    let second =
+        EmulatedTeensy::start(&link_path, &dir.join("events2.csv"), watchdog, COIL_COUNT).unwrap();
     assert!(deliver(&mut link, &second, 300, -2.0), "no reconnect");
     assert!(link.is_open());
     assert_eq!(link.reconnects, 1);
     drop(second);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Rows of the board's event log: (monotonic_ns, max |current| A, event).
+fn board_events(path: &std::path::Path) -> Vec<(u64, f64, String)> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|line| {
+            let f: Vec<&str> = line.split(',').collect();
+            (
+                f[0].parse().unwrap(),
+                f[3].parse().unwrap(),
+                f[4].to_owned(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn an_unplugged_board_holds_its_currents_until_its_watchdog_zeroes_them() {
+    let dir = std::env::temp_dir().join(format!("millinav-unplug-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let link_path = dir.join("teensy.pty");
+    let events_path = dir.join("events.csv");
+    // Long enough that the checks below never race the watchdog on a loaded machine.
+    let watchdog = Duration::from_secs(2);
+    let board = EmulatedTeensy::start(&link_path, &events_path, watchdog, COIL_COUNT).unwrap();
+    let mut link = SerialLink::new(link_path.clone(), 115_200);
+    assert!(deliver(&mut link, &board, 1, 1.5), "no first command");
+    board.inject(LinkFault::Unplug(Duration::from_secs(3)));
+    let until = Instant::now() + Duration::from_secs(1);
+    while link_path.exists() && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    assert!(!link_path.exists(), "the device node did not vanish");
+    // Cable out, board powered: it still drives the last command...
+    assert_eq!(board.outputs().currents(), [1.5; COIL_COUNT]);
+    // ... until its watchdog zeroes it.
+    let until = Instant::now() + Duration::from_secs(5);
+    while board.outputs().currents() != [0.0; COIL_COUNT] && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert_eq!(board.outputs().currents(), [0.0; COIL_COUNT]);
+    let events = board_events(&events_path);
+    let last_frame = events
+        .iter()
+        .rfind(|e| e.2 == "command")
+        .expect("the command is logged");
+    let unplugged = events.iter().find(|e| e.2 == "unplugged").expect("unplug");
+    let zeroed = events
+        .iter()
+        .find(|e| e.2 == "watchdog_zero" && e.0 > unplugged.0)
+        .expect("the watchdog's zeroing is logged with its time");
+    assert_eq!(unplugged.1, 1.5, "the unplug event shows the held current");
+    assert!(
+        zeroed.0 - last_frame.0 >= watchdog.as_nanos() as u64,
+        "zeroed {} ms after the last frame, before the {watchdog:?} watchdog",
+        (zeroed.0 - last_frame.0) as f64 * 1e-6
+    );
+    drop(board);
     let _ = std::fs::remove_dir_all(&dir);
 }

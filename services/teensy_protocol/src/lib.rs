@@ -1,45 +1,96 @@
 //! The Teensy serial protocol, spoken by coilbus and by the plant's emulated Teensy.
 //!
-//! Every frame on the wire:
+//! Every frame on the wire (protocol version 2):
 //!
 //! | bytes | field | notes |
 //! |---|---|---|
 //! | 2 | sync | `0xA5 0x5A` |
+//! | 1 | version | `PROTOCOL_VERSION`; a frame of another version is dropped and counted |
 //! | 1 | kind | `MessageKind` |
 //! | 2 | length | payload length, little endian, ≤ `MAX_PAYLOAD` |
 //! | 4 | seq | sender's frame counter, little endian, wraps |
 //! | length | payload | see `Message` |
-//! | 2 | crc | CRC-16/CCITT-FALSE over kind, length, seq and payload, little endian |
+//! | 2 | crc | CRC-16/CCITT-FALSE over version, kind, length, seq and payload, little endian |
 //!
-//! Payloads (all little endian):
+//! Payloads (all little endian; `n` = coil count, 0 ≤ n ≤ `MAX_COILS`):
 //! - `SetCurrents` (0x01): frame_seq u64 (camera frame the command answers, `u64::MAX` for none),
-//!   flags u8 (bit 0: safe-state zero), 12 x i32 coil currents in mA.
+//!   flags u8 (bit 0: safe-state zero), n u8, n x i32 coil currents in mA.
 //! - `Ack` (0x02): acked seq u32, status u8 (`AckStatus`).
-//! - `Telemetry` (0x03): 12 x i32 applied currents in mA, watchdog tripped u8, rx errors u32,
-//!   frames received u32.
+//! - `Telemetry` (0x03): n u8, n x i32 applied currents in mA, watchdog tripped u8, rx errors
+//!   u32, frames received u32.
 //!
 //! The decoder resynchronises on the sync word after any corruption and counts what it dropped;
-//! it never panics on arbitrary input. The full description (tables, CRC parameters, watchdog
-//! semantics) is in `services/teensy_protocol/PROTOCOL.md`.
+//! it never panics on arbitrary input. The full description (tables, CRC parameters, coil-count
+//! check, watchdog semantics) is in `services/teensy_protocol/PROTOCOL.md`.
 
 use crc::{Crc, CRC_16_IBM_3740};
-/// Coils addressed by one frame; coilbus asserts at compile time that this equals
-/// `shm_schemas::COIL_COUNT` (kept here so the crate needs nothing but `crc`).
-pub const COIL_COUNT: usize = 12;
+
+/// Version byte of every frame. 1 was the fixed 12-coil layout without a version byte; 2 adds
+/// the version byte and carries the coil count in `SetCurrents` and `Telemetry`.
+pub const PROTOCOL_VERSION: u8 = 2;
+
+/// Most coils one frame can address; coilbus asserts at compile time that this equals
+/// `shm_schemas::MAX_COILS` (kept here so the crate needs nothing but `crc`).
+pub const MAX_COILS: usize = 16;
 
 pub const SYNC: [u8; 2] = [0xA5, 0x5A];
-pub const HEADER_LEN: usize = 2 + 1 + 2 + 4;
+pub const HEADER_LEN: usize = 2 + 1 + 1 + 2 + 4;
 pub const CRC_LEN: usize = 2;
-pub const MAX_PAYLOAD: usize = 64;
+/// Longest payload: a `SetCurrents` or `Telemetry` for `MAX_COILS` coils.
+pub const MAX_PAYLOAD: usize = 8 + 1 + 1 + 4 * MAX_COILS;
+/// Longest frame on the wire.
+pub const MAX_FRAME: usize = HEADER_LEN + MAX_PAYLOAD + CRC_LEN;
 /// CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF), known in the crc crate as IBM-3740.
 const CRC16: Crc<u16> = Crc::<u16>::new(&CRC_16_IBM_3740);
 
-const SET_CURRENTS_LEN: usize = 8 + 1 + 4 * COIL_COUNT;
+const SET_CURRENTS_FIXED: usize = 8 + 1 + 1;
 const ACK_LEN: usize = 4 + 1;
-const TELEMETRY_LEN: usize = 4 * COIL_COUNT + 1 + 4 + 4;
+const TELEMETRY_FIXED: usize = 1 + 1 + 4 + 4;
 
 /// Flag bit in `SetCurrents`: this is a safe-state zero, not a controller command.
 pub const FLAG_SAFE_ZERO: u8 = 1;
+
+/// Per-coil values of one frame (mA): at most `MAX_COILS`, their count travels in the frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CoilValues {
+    values: [i32; MAX_COILS],
+    count: u8,
+}
+
+impl CoilValues {
+    /// `values` as a frame's coil block, or `None` when there are more than `MAX_COILS`.
+    pub fn new(values: &[i32]) -> Option<Self> {
+        if values.len() > MAX_COILS {
+            return None;
+        }
+        let mut out = [0i32; MAX_COILS];
+        out[..values.len()].copy_from_slice(values);
+        Some(Self {
+            values: out,
+            count: values.len() as u8,
+        })
+    }
+
+    /// `count` zeros (`count` is capped at `MAX_COILS`).
+    pub fn zeros(count: usize) -> Self {
+        Self {
+            values: [0; MAX_COILS],
+            count: count.min(MAX_COILS) as u8,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        usize::from(self.count)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    pub fn as_slice(&self) -> &[i32] {
+        &self.values[..self.len()]
+    }
+}
 
 #[repr(u8)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -66,6 +117,9 @@ pub enum AckStatus {
     Applied = 0,
     /// The Teensy clamped at least one channel to its own hardware limit.
     Clamped = 1,
+    /// The frame's coil count is not the board's: nothing was applied (outputs unchanged,
+    /// and the frame does not feed the watchdog).
+    RejectedCoilCount = 2,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -73,14 +127,14 @@ pub enum Message {
     SetCurrents {
         frame_seq: u64,
         flags: u8,
-        currents_ma: [i32; COIL_COUNT],
+        currents_ma: CoilValues,
     },
     Ack {
         acked_seq: u32,
         status: u8,
     },
     Telemetry {
-        applied_ma: [i32; COIL_COUNT],
+        applied_ma: CoilValues,
         watchdog_tripped: bool,
         rx_errors: u32,
         frames_received: u32,
@@ -119,7 +173,8 @@ pub fn encode(packet: &Packet) -> Vec<u8> {
         } => {
             payload.extend_from_slice(&frame_seq.to_le_bytes());
             payload.push(*flags);
-            for c in currents_ma {
+            payload.push(currents_ma.count);
+            for c in currents_ma.as_slice() {
                 payload.extend_from_slice(&c.to_le_bytes());
             }
             MessageKind::SetCurrents
@@ -135,7 +190,8 @@ pub fn encode(packet: &Packet) -> Vec<u8> {
             rx_errors,
             frames_received,
         } => {
-            for c in applied_ma {
+            payload.push(applied_ma.count);
+            for c in applied_ma.as_slice() {
                 payload.extend_from_slice(&c.to_le_bytes());
             }
             payload.push(u8::from(*watchdog_tripped));
@@ -146,6 +202,7 @@ pub fn encode(packet: &Packet) -> Vec<u8> {
     };
     let mut out = Vec::with_capacity(HEADER_LEN + payload.len() + CRC_LEN);
     out.extend_from_slice(&SYNC);
+    out.push(PROTOCOL_VERSION);
     out.push(kind as u8);
     out.extend_from_slice(&(payload.len() as u16).to_le_bytes());
     out.extend_from_slice(&packet.seq.to_le_bytes());
@@ -159,6 +216,8 @@ pub fn encode(packet: &Packet) -> Vec<u8> {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct DecodeCounters {
     pub packets: u64,
+    /// Frames (with a valid-looking header position) of another protocol version.
+    pub bad_version: u64,
     pub crc_errors: u64,
     pub bad_length: u64,
     pub unknown_kind: u64,
@@ -169,7 +228,7 @@ pub struct DecodeCounters {
 
 impl DecodeCounters {
     pub fn errors(&self) -> u64 {
-        self.crc_errors + self.bad_length + self.unknown_kind + self.bad_payload
+        self.bad_version + self.crc_errors + self.bad_length + self.unknown_kind + self.bad_payload
     }
 }
 
@@ -210,7 +269,13 @@ impl Decoder {
             if available.len() < HEADER_LEN {
                 break;
             }
-            let length = u16::from_le_bytes([available[3], available[4]]) as usize;
+            if available[2] != PROTOCOL_VERSION {
+                // A peer speaking another version (or a false sync): skip this sync byte.
+                self.counters.bad_version += 1;
+                start += 1;
+                continue;
+            }
+            let length = u16::from_le_bytes([available[4], available[5]]) as usize;
             if length > MAX_PAYLOAD {
                 self.counters.bad_length += 1;
                 start += 1; // skip this sync byte and look for the next
@@ -228,9 +293,9 @@ impl Decoder {
                 start += 1;
                 continue;
             }
-            let seq = u32::from_le_bytes([frame[5], frame[6], frame[7], frame[8]]);
+            let seq = u32::from_le_bytes([frame[6], frame[7], frame[8], frame[9]]);
             let payload = &frame[HEADER_LEN..HEADER_LEN + length];
-            match MessageKind::from_u8(frame[2]) {
+            match MessageKind::from_u8(frame[3]) {
                 None => self.counters.unknown_kind += 1,
                 Some(kind) => match parse_payload(kind, payload) {
                     Some(message) => {
@@ -244,7 +309,7 @@ impl Decoder {
         }
         self.buffer.drain(..start);
         // A peer that sends only garbage must not grow the buffer without bound.
-        if self.buffer.len() > 4 * (HEADER_LEN + MAX_PAYLOAD + CRC_LEN) {
+        if self.buffer.len() > 4 * MAX_FRAME {
             self.counters.skipped_bytes += self.buffer.len() as u64;
             self.buffer.clear();
         }
@@ -265,7 +330,7 @@ pub fn check_decoder_invariants(data: &[u8]) {
         let n = chunk.min(rest.len());
         packets.extend(decoder.push(&rest[..n]));
         assert!(
-            decoder.buffer.len() <= HEADER_LEN + MAX_PAYLOAD + CRC_LEN,
+            decoder.buffer.len() <= MAX_FRAME,
             "decoder buffer grew to {}",
             decoder.buffer.len()
         );
@@ -286,12 +351,25 @@ fn find_sync(bytes: &[u8]) -> Option<usize> {
     bytes.windows(2).position(|w| w == SYNC)
 }
 
-fn read_i32s(bytes: &[u8]) -> [i32; COIL_COUNT] {
-    let mut out = [0i32; COIL_COUNT];
-    for (value, chunk) in out.iter_mut().zip(bytes.chunks_exact(4)) {
+/// Reads a coil block: a count byte, then that many i32; `None` unless exactly `bytes` long
+/// after `tail` trailing bytes are set aside.
+fn read_coil_block(bytes: &[u8], tail: usize) -> Option<(CoilValues, &[u8])> {
+    let (&count, rest) = bytes.split_first()?;
+    let count = usize::from(count);
+    if count > MAX_COILS || rest.len() != 4 * count + tail {
+        return None;
+    }
+    let mut values = [0i32; MAX_COILS];
+    for (value, chunk) in values.iter_mut().zip(rest[..4 * count].chunks_exact(4)) {
         *value = i32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
     }
-    out
+    Some((
+        CoilValues {
+            values,
+            count: count as u8,
+        },
+        &rest[4 * count..],
+    ))
 }
 
 fn read_u32(bytes: &[u8]) -> u32 {
@@ -300,26 +378,27 @@ fn read_u32(bytes: &[u8]) -> u32 {
 
 fn parse_payload(kind: MessageKind, payload: &[u8]) -> Option<Message> {
     match kind {
-        MessageKind::SetCurrents if payload.len() == SET_CURRENTS_LEN => {
+        MessageKind::SetCurrents if payload.len() >= SET_CURRENTS_FIXED => {
             let mut seq_bytes = [0u8; 8];
             seq_bytes.copy_from_slice(&payload[..8]);
+            let (currents_ma, _) = read_coil_block(&payload[9..], 0)?;
             Some(Message::SetCurrents {
                 frame_seq: u64::from_le_bytes(seq_bytes),
                 flags: payload[8],
-                currents_ma: read_i32s(&payload[9..]),
+                currents_ma,
             })
         }
         MessageKind::Ack if payload.len() == ACK_LEN => Some(Message::Ack {
             acked_seq: read_u32(payload),
             status: payload[4],
         }),
-        MessageKind::Telemetry if payload.len() == TELEMETRY_LEN => {
-            let n = 4 * COIL_COUNT;
+        MessageKind::Telemetry if payload.len() >= TELEMETRY_FIXED => {
+            let (applied_ma, tail) = read_coil_block(payload, 9)?;
             Some(Message::Telemetry {
-                applied_ma: read_i32s(&payload[..n]),
-                watchdog_tripped: payload[n] != 0,
-                rx_errors: read_u32(&payload[n + 1..]),
-                frames_received: read_u32(&payload[n + 5..]),
+                applied_ma,
+                watchdog_tripped: tail[0] != 0,
+                rx_errors: read_u32(&tail[1..]),
+                frames_received: read_u32(&tail[5..]),
             })
         }
         _ => None,
@@ -335,10 +414,8 @@ mod tests {
     use super::*;
 
     fn sample_packets() -> Vec<Packet> {
-        let mut currents = [0i32; COIL_COUNT];
-        for (i, c) in currents.iter_mut().enumerate() {
-            *c = (i as i32 - 6) * 1234;
-        }
+        let values: Vec<i32> = (0..12).map(|i| (i - 6) * 1234).collect();
+        let currents = CoilValues::new(&values).unwrap();
         vec![
             Packet {
                 seq: 7,
@@ -358,7 +435,7 @@ mod tests {
             Packet {
                 seq: u32::MAX,
                 message: Message::Telemetry {
-                    applied_ma: currents,
+                    applied_ma: CoilValues::new(&[7, -7, 1 << 30]).unwrap(),
                     watchdog_tripped: true,
                     rx_errors: 3,
                     frames_received: 99,
@@ -409,23 +486,107 @@ mod tests {
     fn truncated_frame_waits_then_completes() {
         let bytes = encode(&sample_packets()[0]);
         let mut decoder = Decoder::new();
-        assert!(decoder.push(&bytes[..10]).is_empty());
-        assert_eq!(decoder.push(&bytes[10..]).len(), 1);
+        assert!(decoder.push(&bytes[..11]).is_empty());
+        assert_eq!(decoder.push(&bytes[11..]).len(), 1);
+    }
+
+    /// A frame with a correct CRC around arbitrary header fields and payload.
+    fn raw_frame(version: u8, kind: u8, payload: &[u8]) -> Vec<u8> {
+        let mut frame = vec![0xA5, 0x5A, version, kind];
+        frame.extend((payload.len() as u16).to_le_bytes());
+        frame.extend(1u32.to_le_bytes());
+        frame.extend(payload);
+        let crc = CRC16.checksum(&frame[2..]);
+        frame.extend(crc.to_le_bytes());
+        frame
     }
 
     #[test]
     fn oversize_length_and_wrong_payload_size_are_counted() {
-        let mut frame = vec![0xA5, 0x5A, 0x01, 0xFF, 0xFF, 0, 0, 0, 0];
+        let frame = vec![0xA5, 0x5A, PROTOCOL_VERSION, 0x01, 0xFF, 0xFF, 0, 0, 0, 0];
         let mut decoder = Decoder::new();
         assert!(decoder.push(&frame).is_empty());
         assert_eq!(decoder.counters.bad_length, 1);
 
         // A valid CRC around a payload of the wrong size for its kind.
-        frame = vec![0xA5, 0x5A, 0x02, 3, 0, 1, 0, 0, 0, 9, 9, 9];
-        let crc = CRC16.checksum(&frame[2..]);
-        frame.extend(crc.to_le_bytes());
-        assert!(decoder.push(&frame).is_empty());
+        assert!(decoder
+            .push(&raw_frame(PROTOCOL_VERSION, 0x02, &[9, 9, 9]))
+            .is_empty());
         assert_eq!(decoder.counters.bad_payload, 1);
+    }
+
+    #[test]
+    fn coil_count_must_match_the_block_and_stay_within_max() {
+        let mut decoder = Decoder::new();
+        // Says 3 coils, carries 2.
+        let mut short = vec![0u8; 8];
+        short.extend([0, 3]);
+        short.extend([0u8; 8]);
+        assert!(decoder
+            .push(&raw_frame(PROTOCOL_VERSION, 0x01, &short))
+            .is_empty());
+        // Says 17 coils (above MAX_COILS) and carries them: still refused.
+        let mut over = vec![0u8; 8];
+        over.extend([0, (MAX_COILS + 1) as u8]);
+        over.extend(vec![0u8; 4 * (MAX_COILS + 1)]);
+        let frame = raw_frame(PROTOCOL_VERSION, 0x01, &over);
+        assert!(decoder.push(&frame).is_empty());
+        assert_eq!(
+            decoder.counters.bad_payload + decoder.counters.bad_length,
+            2
+        );
+        // Any count up to MAX_COILS round-trips, including none.
+        for n in [0usize, 1, 8, 12, MAX_COILS] {
+            let values: Vec<i32> = (0..n as i32).map(|i| i * 1000 - 3).collect();
+            let packet = Packet {
+                seq: n as u32,
+                message: Message::SetCurrents {
+                    frame_seq: 1,
+                    flags: 0,
+                    currents_ma: CoilValues::new(&values).unwrap(),
+                },
+            };
+            assert_eq!(decoder.push(&encode(&packet)), vec![packet]);
+        }
+        assert!(CoilValues::new(&[0; MAX_COILS + 1]).is_none());
+    }
+
+    #[test]
+    fn the_documented_example_frame_is_what_encode_writes() {
+        let mut currents = [0i32; 12];
+        currents[0] = 1000;
+        let bytes = encode(&Packet {
+            seq: 1,
+            message: Message::SetCurrents {
+                frame_seq: 5,
+                flags: 0,
+                currents_ma: CoilValues::new(&currents).unwrap(),
+            },
+        });
+        // PROTOCOL.md, "Example".
+        let head = [
+            0xA5, 0x5A, 0x02, 0x01, 0x3A, 0x00, 0x01, 0x00, 0x00, 0x00, 0x05, 0, 0, 0, 0, 0, 0, 0,
+            0x00, 0x0C, 0xE8, 0x03, 0x00, 0x00,
+        ];
+        assert_eq!(&bytes[..head.len()], &head);
+        assert_eq!(bytes.len(), HEADER_LEN + 58 + CRC_LEN);
+        assert!(bytes[head.len()..bytes.len() - 2].iter().all(|b| *b == 0));
+    }
+
+    #[test]
+    fn a_frame_of_another_protocol_version_is_dropped_and_counted() {
+        let good = encode(&sample_packets()[1]);
+        let mut old = good.clone();
+        old[2] = 1;
+        let crc = CRC16.checksum(&old[2..old.len() - 2]);
+        let n = old.len();
+        old[n - 2..].copy_from_slice(&crc.to_le_bytes());
+        let mut stream = old;
+        stream.extend(&good);
+        let mut decoder = Decoder::new();
+        assert_eq!(decoder.push(&stream), vec![sample_packets()[1].clone()]);
+        assert_eq!(decoder.counters.bad_version, 1);
+        assert!(decoder.counters.errors() >= 1);
     }
 
     #[test]
@@ -434,7 +595,7 @@ mod tests {
         for i in 0..10_000u32 {
             decoder.push(&[(i % 251) as u8, 0xA5]);
         }
-        assert!(decoder.buffer.len() <= 4 * (HEADER_LEN + MAX_PAYLOAD + CRC_LEN));
+        assert!(decoder.buffer.len() <= 4 * MAX_FRAME);
     }
 
     #[test]

@@ -18,7 +18,7 @@ use millinav_kit::rerun;
 use millinav_kit::scenario::Scenario;
 use millinav_kit::Runtime;
 use serde::{Deserialize, Serialize};
-use shm_schemas::{deadlines, services, FrameHeader, PixelFormat, Pose, PoseSource};
+use shm_schemas::{deadlines, services, Flag, FrameHeader, PixelFormat, Pose, PoseSource};
 
 use std::path::PathBuf;
 
@@ -194,37 +194,27 @@ impl RoiTracker {
 
 /// Converts a detection (pixels) into a pose (metres) with the frame's geometry.
 pub fn pose_from_detection(header: &FrameHeader, d: &Detection, source: PoseSource) -> Pose {
-    let to_world = |(c, r): (f64, f64)| {
-        [
-            (header.origin_x_mm + (c + 0.5) * header.mm_per_px) * 1e-3,
-            (header.origin_y_mm - (r + 0.5) * header.mm_per_px) * 1e-3,
-        ]
-    };
+    let to_world = |(c, r): (f64, f64)| header.pixel_to_world_m(c, r);
     let centroid = to_world(d.centroid_px);
-    let tip = to_world(d.tip_px);
-    let tail = to_world(d.tail_px);
     Pose {
-        frame_seq: header.seq,
-        frame_incarnation: header.incarnation,
-        capture_time_ns: header.capture_time_ns,
+        stamp: header.stamp,
         position_m: centroid,
         // Image y grows downwards: flip to the world's y-up convention.
         heading_rad: -d.heading_image_rad,
-        tip_m: tip,
+        tip_m: to_world(d.tip_px),
         centroid_m: centroid,
-        tail_m: tail,
+        tail_m: to_world(d.tail_px),
         confidence: d.confidence,
-        valid: true,
         source: source as u32,
+        valid: Flag::TRUE,
+        reserved: [0; 3],
     }
 }
 
 pub fn invalid_pose(header: &FrameHeader) -> Pose {
     Pose {
-        frame_seq: header.seq,
-        frame_incarnation: header.incarnation,
-        capture_time_ns: header.capture_time_ns,
-        valid: false,
+        stamp: header.stamp,
+        valid: Flag::FALSE,
         source: PoseSource::Classical as u32,
         ..Default::default()
     }
@@ -343,7 +333,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             tracing::debug!("woke without a frame");
             continue;
         };
-        tracing::debug!(seq = sample.user_header().seq, "frame");
+        tracing::debug!(seq = sample.user_header().stamp.seq, "frame");
         let header = *sample.user_header();
         let rgb = sample.payload();
         let pose = match header.validate(rgb.len()) {
@@ -352,14 +342,14 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                 if header.stride != header.width * 3 {
                     tracing::warn!(
                         "padded frames are not supported; frame {} dropped",
-                        header.seq
+                        header.stamp.seq
                     );
                     invalid_pose(&header)
                 } else {
                     let result = pipeline.process(rgb, w as usize, h as usize, header.mm_per_px);
-                    let log_image =
-                        config.image_log_every > 0 && header.seq % config.image_log_every == 0;
-                    recording::set_time(&rt.rec, header.capture_time_ns, header.seq);
+                    let log_image = config.image_log_every > 0
+                        && header.stamp.seq % config.image_log_every == 0;
+                    recording::set_time(&rt.rec, header.stamp.capture_time_ns, header.stamp.seq);
                     let mask = result.classical_mask.as_ref().map(|(m, r)| (m, *r));
                     match &result.detection {
                         Ok(detection) => {
@@ -370,7 +360,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
                         Err(why) => {
                             lost_frames += 1;
                             if lost_frames == 1 || lost_frames.is_multiple_of(100) {
-                                tracing::warn!(seq = header.seq, "no pose: {why}");
+                                tracing::warn!(seq = header.stamp.seq, "no pose: {why}");
                             }
                             log_frame(&rt.rec, &header, rgb, None, None, log_image);
                             invalid_pose(&header)
@@ -381,17 +371,17 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             Ok(other) => {
                 tracing::warn!(
                     "unsupported pixel format {other:?}; frame {} dropped",
-                    header.seq
+                    header.stamp.seq
                 );
                 invalid_pose(&header)
             }
             Err(why) => {
-                tracing::warn!("malformed frame {}: {why}", header.seq);
+                tracing::warn!("malformed frame {}: {why}", header.stamp.seq);
                 invalid_pose(&header)
             }
         };
         drop(sample);
-        if pose.valid {
+        if pose.valid == Flag::TRUE {
             let _ = rt.rec.log(
                 "world/robot/estimated",
                 &rerun::Points2D::new([[
@@ -404,7 +394,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             recording::scalar(&rt.rec, "vision/y_mm", pose.position_m[1] * 1e3);
             recording::scalar(&rt.rec, "vision/heading_deg", pose.heading_rad.to_degrees());
         }
-        recording::scalar(&rt.rec, "vision/valid", f64::from(u8::from(pose.valid)));
+        recording::scalar(&rt.rec, "vision/valid", f64::from(pose.valid.raw()));
         poses.send(pose)?;
     }
     let _ = rt.rec.flush_blocking();

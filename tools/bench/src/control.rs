@@ -12,7 +12,7 @@ use millinav_control::controllers::{ControlInput, Controller, ControllerKind, No
 use millinav_control::reference::Reference;
 use millinav_control::{ControlConfig, ControlLoop};
 use nalgebra::{DMatrix, DVector, Vector2, Vector3};
-use shm_schemas::Pose;
+use shm_schemas::{Flag, FrameStamp, Pose};
 
 use crate::BenchError;
 
@@ -107,13 +107,12 @@ impl LoopBench {
     pub fn pose(&self, k: usize) -> Pose {
         let p = position(&self.reference, k);
         Pose {
-            frame_seq: k as u64,
-            capture_time_ns: (k as u64 + 1) * (PERIOD_S * 1e9) as u64,
+            stamp: FrameStamp::new(k as u64, 0, (k as u64 + 1) * (PERIOD_S * 1e9) as u64),
             position_m: [p.x, p.y],
             centroid_m: [p.x, p.y],
             heading_rad: 0.6,
             confidence: 1.0,
-            valid: true,
+            valid: Flag::TRUE,
             ..Default::default()
         }
     }

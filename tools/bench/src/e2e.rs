@@ -161,14 +161,14 @@ pub fn run(bin_dir: &Path, dir: &Path, duration_s: f64) -> Result<E2eResult, Ben
         root.clone(),
         services::POSE,
         stop.clone(),
-        |p| (p.frame_seq, p.capture_time_ns),
+        |p| (p.stamp.seq, p.stamp.capture_time_ns),
     );
     let commands = subscribe::<CoilCommand>(
         prefix.clone(),
         root.clone(),
         services::COMMAND,
         stop.clone(),
-        |c| (c.frame_seq, c.capture_time_ns),
+        |c| (c.stamp.seq, c.stamp.capture_time_ns),
     );
     let log = std::fs::File::create(dir.join("e2e-supervisor.log"))?;
     let mut child = Command::new(&supervisor)

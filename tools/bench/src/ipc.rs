@@ -15,7 +15,7 @@ use millinav_kit::clock::monotonic_ns;
 use millinav_kit::iceoryx2::prelude::*;
 use millinav_kit::ports::{FrameInbox, FrameOutbox, Inbox, Outbox};
 use millinav_kit::{iceoryx_config, iox};
-use shm_schemas::{FrameHeader, Pose, FRAME_BYTES};
+use shm_schemas::{Flag, FrameHeader, FrameStamp, Pose, FRAME_BYTES};
 
 use crate::BenchError;
 
@@ -112,8 +112,7 @@ fn node(rv: &Rendezvous, name: &str) -> Result<Node<ipc::Service>, BenchError> {
 
 fn frame_header(seq: u64, stamp: u64) -> FrameHeader {
     FrameHeader {
-        seq,
-        capture_time_ns: stamp,
+        stamp: FrameStamp::new(seq, 0, stamp),
         width: shm_schemas::FRAME_WIDTH,
         height: shm_schemas::FRAME_HEIGHT,
         stride: shm_schemas::FRAME_WIDTH * 3,
@@ -123,9 +122,8 @@ fn frame_header(seq: u64, stamp: u64) -> FrameHeader {
 
 fn pose(seq: u64, stamp: u64) -> Pose {
     Pose {
-        frame_seq: seq,
-        capture_time_ns: stamp,
-        valid: true,
+        stamp: FrameStamp::new(seq, 0, stamp),
+        valid: Flag::TRUE,
         ..Default::default()
     }
 }
@@ -329,7 +327,7 @@ fn send_iceoryx2(
     let wait_ack = |seq: u64, timeout: Duration| -> Result<bool, BenchError> {
         let deadline = std::time::Instant::now() + timeout;
         loop {
-            if acks.receive_all()?.iter().any(|a| a.frame_seq == seq) {
+            if acks.receive_all()?.iter().any(|a| a.stamp.seq == seq) {
                 return Ok(true);
             }
             let left = deadline.saturating_duration_since(std::time::Instant::now());
@@ -443,14 +441,14 @@ pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<
                     if let Some(sample) = f.latest()? {
                         let now = monotonic_ns();
                         let h = sample.user_header();
-                        got = Some((h.seq, h.capture_time_ns, now));
+                        got = Some((h.stamp.seq, h.stamp.capture_time_ns, now));
                     }
                 }
                 if let Some(p) = &poses {
                     let _ = p.listener.timed_wait(|_| {}, Duration::from_millis(100));
                     woke = monotonic_ns();
                     if let Some(m) = p.latest()? {
-                        got = Some((m.frame_seq, m.capture_time_ns, monotonic_ns()));
+                        got = Some((m.stamp.seq, m.stamp.capture_time_ns, monotonic_ns()));
                     }
                 }
                 ack.update_connections();

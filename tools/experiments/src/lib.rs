@@ -12,6 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context};
+use fieldmaps::coils::COIL_COUNT;
 use millinav_coilbus::protocol::{amps_to_ma, ma_to_amps};
 use millinav_coilbus::{CoilBus, CoilbusConfig};
 use millinav_control::reference::Reference;
@@ -22,7 +23,7 @@ use nalgebra::Vector2;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use shm_schemas::{deadlines, Pose, PoseSource, COIL_COUNT};
+use shm_schemas::{deadlines, Flag, FrameStamp, Pose, PoseSource};
 
 /// Flow settings of the paper.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -182,7 +183,12 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
     let mut control = millinav_control::build_loop(scenario, 0)?;
     let flow = millinav_flow::load_estimator(scenario)?;
     let coilbus: CoilbusConfig = scenario.section("coilbus")?;
-    let mut bus = CoilBus::new(coilbus.limits.clone(), deadlines::COMMAND);
+    coilbus.validate()?;
+    let mut bus = CoilBus::new(
+        coilbus.limits.clone(),
+        deadlines::COMMAND,
+        coilbus.coil_count,
+    );
     let mut rng = ChaCha8Rng::seed_from_u64(scenario.run.seed ^ 0x7669_7369_6f6e);
     let noise = Normal::new(0.0, FAST_POSE_NOISE_M)?;
     let dt = scenario.frame_period_s();
@@ -207,12 +213,11 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
         let measured =
             state.position_m + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng));
         let pose = Pose {
-            frame_seq: seq,
-            capture_time_ns: secs_to_ns(state.time_s),
+            stamp: FrameStamp::new(seq, 0, secs_to_ns(state.time_s)),
             position_m: [measured.x, measured.y],
             heading_rad: state.heading_rad,
             confidence: 1.0,
-            valid: true,
+            valid: Flag::TRUE,
             source: PoseSource::Unet as u32,
             ..Default::default()
         };
@@ -221,7 +226,9 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
         if let Some(out) = bus.on_command(&decision.command) {
             bus.applied(&decision.command, &out, now);
             // The wire carries milliamperes.
-            applied = out.currents_a.map(|a| ma_to_amps(amps_to_ma(a)));
+            for (coil, current) in applied.iter_mut().zip(out.currents()) {
+                *coil = ma_to_amps(amps_to_ma(*current));
+            }
         }
         model.step(&mut state, &applied, dt);
     }

@@ -3,4 +3,5 @@ pub mod cfd;
 pub mod coils;
 pub mod import;
 pub mod lbm;
+pub mod rig_check;
 pub mod validate;

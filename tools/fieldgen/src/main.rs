@@ -18,6 +18,8 @@ enum Command {
     Cfd(fieldgen::cfd::CfdArgs),
     /// Convert an ANSYS Fluent or OpenFOAM export into a millinav flow map.
     Import(fieldgen::import::ImportArgs),
+    /// Load and validate a rig file; print its summary or the error.
+    RigCheck(fieldgen::rig_check::RigCheckArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -29,5 +31,6 @@ fn main() -> anyhow::Result<()> {
         Command::Coils(args) => fieldgen::coils::run(&args),
         Command::Cfd(args) => fieldgen::cfd::run(&args),
         Command::Import(args) => fieldgen::import::run(&args),
+        Command::RigCheck(args) => fieldgen::rig_check::run(&args),
     }
 }

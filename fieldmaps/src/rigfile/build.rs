@@ -1,0 +1,746 @@
+//! Validation of the parsed rig file and construction of the runtime objects. Each check
+//! reports the first problem as one error naming the file and the key path.
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use nalgebra::{Unit, Vector2, Vector3};
+
+use super::key_path::key_path_at;
+use super::schema;
+use super::{
+    CameraPixelFormat, FieldModel, FlowCondition, Rig, RigCamera, RigCoil, RigCoilField,
+    RigFileError, RigPhantom, Zone, ZoneKind, MAX_FILAMENTS, MAX_RIG_COILS,
+};
+use super::{RIG_FORMAT, RIG_VERSION};
+use crate::coils::{Coil, CoilSystem, Winding};
+use crate::fieldmap::CoilFieldMaps;
+use crate::flowmap::FlowMap;
+use crate::mask::{CanalMask, MaskError};
+use crate::phantom::{ImageGeometry, Inlet, Outlet};
+use crate::rig::{RigError, RobotParams};
+
+/// Where errors point.
+pub(super) struct Ctx<'a> {
+    pub path: &'a Path,
+    pub dir: &'a Path,
+}
+
+impl Ctx<'_> {
+    fn err(&self, field: impl Into<String>, message: impl Into<String>) -> RigFileError {
+        RigFileError::Invalid {
+            path: self.path.to_owned(),
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+
+    fn resolve(&self, relative: &Path) -> PathBuf {
+        if relative.is_absolute() {
+            relative.to_owned()
+        } else {
+            self.dir.join(relative)
+        }
+    }
+
+    pub(super) fn toml_error(&self, text: &str, e: &toml::de::Error) -> RigFileError {
+        let (field, line) = match e.span() {
+            Some(span) => (
+                key_path_at(text, span.start),
+                Some(text[..span.start.min(text.len())].matches('\n').count() + 1),
+            ),
+            None => (String::new(), None),
+        };
+        let field = if field.is_empty() {
+            "(top level)".to_string()
+        } else {
+            field
+        };
+        let message = match line {
+            Some(line) => format!("{} (line {line})", e.message().trim()),
+            None => e.message().trim().to_string(),
+        };
+        self.err(field, message)
+    }
+}
+
+fn finite(v: &[f64]) -> bool {
+    v.iter().all(|x| x.is_finite())
+}
+
+fn positive(v: f64) -> bool {
+    v.is_finite() && v > 0.0
+}
+
+fn fmt_vec(v: &[f64]) -> String {
+    let parts: Vec<String> = v.iter().map(|x| format!("{x}")).collect();
+    format!("[{}]", parts.join(", "))
+}
+
+fn check_name(
+    ctx: &Ctx<'_>,
+    field: &str,
+    name: &str,
+    seen: &mut HashSet<String>,
+) -> Result<(), RigFileError> {
+    if name.is_empty()
+        || !name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-'))
+    {
+        return Err(ctx.err(
+            field,
+            format!("{name:?}: use ASCII letters, digits, '_' or '-' (not empty)"),
+        ));
+    }
+    if !seen.insert(name.to_string()) {
+        return Err(ctx.err(field, format!("duplicate name {name:?}")));
+    }
+    Ok(())
+}
+
+fn require_positive(ctx: &Ctx<'_>, field: &str, v: f64) -> Result<(), RigFileError> {
+    if positive(v) {
+        Ok(())
+    } else {
+        Err(ctx.err(field, format!("must be finite and > 0, got {v}")))
+    }
+}
+
+fn mm3(v: [f64; 3]) -> Vector3<f64> {
+    Vector3::new(v[0], v[1], v[2]) / 1e3
+}
+
+fn mm2(v: [f64; 2]) -> Vector2<f64> {
+    Vector2::new(v[0], v[1]) / 1e3
+}
+
+pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFileError> {
+    if file.format != RIG_FORMAT {
+        return Err(ctx.err(
+            "format",
+            format!("must be {RIG_FORMAT:?}, got {:?}", file.format),
+        ));
+    }
+    if file.version != RIG_VERSION {
+        return Err(ctx.err(
+            "version",
+            format!(
+                "this loader reads version {RIG_VERSION}, got {}",
+                file.version
+            ),
+        ));
+    }
+    if file.name.trim().is_empty() {
+        return Err(ctx.err("name", "must not be empty"));
+    }
+    let coils = build_coils(ctx, &file.coils)?;
+    let em = &file.electromagnet;
+    let field_model = parse_field_model(ctx, &em.field_model)?;
+    let coil_field = build_field(ctx, &field_model, &coils)?;
+    require_positive(ctx, "electromagnet.max_total_power_w", em.max_total_power_w)?;
+    let allocation_coils = build_allocation(ctx, &em.allocation_coils, &coils)?;
+    let camera = build_camera(ctx, &file.camera)?;
+    let phantom = build_phantom(ctx, &file.phantom, &camera)?;
+    let robot = build_robot(ctx, &file.robot)?;
+    Ok(Rig {
+        path: ctx.path.to_owned(),
+        name: file.name,
+        description: file.description,
+        coils,
+        field_model,
+        coil_field,
+        max_total_power_w: em.max_total_power_w,
+        allocation_coils,
+        camera,
+        phantom,
+        robot,
+    })
+}
+
+fn build_coils(
+    ctx: &Ctx<'_>,
+    sections: &[schema::CoilSection],
+) -> Result<Vec<RigCoil>, RigFileError> {
+    if sections.is_empty() {
+        return Err(ctx.err("coils", "a rig needs at least one coil"));
+    }
+    if sections.len() > MAX_RIG_COILS {
+        return Err(ctx.err(
+            "coils",
+            format!(
+                "{} coils, at most {MAX_RIG_COILS} are supported (MAX_RIG_COILS)",
+                sections.len()
+            ),
+        ));
+    }
+    let mut seen = HashSet::new();
+    let mut coils = Vec::with_capacity(sections.len());
+    for (i, c) in sections.iter().enumerate() {
+        let at = |key: &str| format!("coils[{i}].{key}");
+        check_name(ctx, &at("name"), &c.name, &mut seen)?;
+        if !finite(&c.center_mm) {
+            return Err(ctx.err(
+                at("center_mm"),
+                format!("must be finite, got {}", fmt_vec(&c.center_mm)),
+            ));
+        }
+        let axis = Vector3::from(c.axis);
+        let axis = match (finite(&c.axis), axis.try_normalize(1e-12)) {
+            (true, Some(unit)) => Unit::new_unchecked(unit),
+            _ => {
+                return Err(ctx.err(
+                    at("axis"),
+                    format!("must be a finite non-zero vector, got {}", fmt_vec(&c.axis)),
+                ))
+            }
+        };
+        if let Some(turns) = c.turns {
+            if !positive(turns) {
+                return Err(ctx.err(at("turns"), format!("must be > 0, got {turns}")));
+            }
+        }
+        let winding = match &c.winding {
+            None => None,
+            Some(w) => {
+                let f = |key: &str| format!("coils[{i}].winding.{key}");
+                require_positive(ctx, &f("inner_radius_mm"), w.inner_radius_mm)?;
+                if !(w.outer_radius_mm.is_finite() && w.outer_radius_mm > w.inner_radius_mm) {
+                    return Err(ctx.err(
+                        f("outer_radius_mm"),
+                        format!(
+                            "must exceed inner_radius_mm ({}), got {}",
+                            w.inner_radius_mm, w.outer_radius_mm
+                        ),
+                    ));
+                }
+                require_positive(ctx, &f("length_mm"), w.length_mm)?;
+                for (key, n) in [
+                    ("radial_filaments", w.radial_filaments),
+                    ("axial_filaments", w.axial_filaments),
+                ] {
+                    if !(1..=MAX_FILAMENTS).contains(&n) {
+                        return Err(ctx.err(
+                            f(key),
+                            format!("must be within 1..={MAX_FILAMENTS}, got {n}"),
+                        ));
+                    }
+                }
+                Some(Winding {
+                    inner_radius_m: w.inner_radius_mm / 1e3,
+                    outer_radius_m: w.outer_radius_mm / 1e3,
+                    length_m: w.length_mm / 1e3,
+                    radial_filaments: w.radial_filaments as usize,
+                    axial_filaments: w.axial_filaments as usize,
+                })
+            }
+        };
+        require_positive(ctx, &at("resistance_ohm"), c.resistance_ohm)?;
+        require_positive(ctx, &at("max_current_a"), c.max_current_a)?;
+        coils.push(RigCoil {
+            name: c.name.clone(),
+            center_m: mm3(c.center_mm),
+            axis,
+            turns: c.turns,
+            winding,
+            resistance_ohm: c.resistance_ohm,
+            max_current_a: c.max_current_a,
+        });
+    }
+    Ok(coils)
+}
+
+fn parse_field_model(ctx: &Ctx<'_>, text: &str) -> Result<FieldModel, RigFileError> {
+    let field = "electromagnet.field_model";
+    match text.trim() {
+        "analytic" => Ok(FieldModel::Analytic),
+        other => match other.strip_prefix("maps:") {
+            Some(dir) if !dir.trim().is_empty() => {
+                Ok(FieldModel::Maps(ctx.resolve(Path::new(dir.trim()))))
+            }
+            _ => Err(ctx.err(
+                field,
+                format!("must be \"analytic\" or \"maps:<dir>\", got {text:?}"),
+            )),
+        },
+    }
+}
+
+fn build_field(
+    ctx: &Ctx<'_>,
+    model: &FieldModel,
+    coils: &[RigCoil],
+) -> Result<RigCoilField, RigFileError> {
+    match model {
+        FieldModel::Analytic => {
+            let mut built = Vec::with_capacity(coils.len());
+            for (i, c) in coils.iter().enumerate() {
+                let (Some(turns), Some(winding)) = (c.turns, c.winding.as_ref()) else {
+                    let missing = if c.turns.is_none() {
+                        "turns"
+                    } else {
+                        "winding"
+                    };
+                    return Err(ctx.err(
+                        format!("coils[{i}].{missing}"),
+                        "required by the analytic field model",
+                    ));
+                };
+                built.push(Coil::from_winding(
+                    c.name.clone(),
+                    c.center_m,
+                    c.axis,
+                    winding,
+                    turns,
+                ));
+            }
+            Ok(RigCoilField::Analytic(CoilSystem { coils: built }))
+        }
+        FieldModel::Maps(dir) => {
+            let field = "electromagnet.field_model";
+            let maps = CoilFieldMaps::load(dir).map_err(|e| ctx.err(field, e.to_string()))?;
+            let names: Vec<&str> = maps.coils().iter().map(|c| c.name.as_str()).collect();
+            if names.len() != coils.len() {
+                return Err(ctx.err(
+                    "coils",
+                    format!(
+                        "{} coils, but the field maps in {} hold {} ({})",
+                        coils.len(),
+                        dir.display(),
+                        names.len(),
+                        names.join(", ")
+                    ),
+                ));
+            }
+            for (i, (c, map_name)) in coils.iter().zip(&names).enumerate() {
+                if c.name != *map_name {
+                    return Err(ctx.err(
+                        format!("coils[{i}].name"),
+                        format!(
+                            "{:?}, but the field maps in {} have {map_name:?} at index {i} \
+                             (coils must be listed in the maps' order)",
+                            c.name,
+                            dir.display()
+                        ),
+                    ));
+                }
+            }
+            Ok(RigCoilField::Maps(Arc::new(maps)))
+        }
+    }
+}
+
+fn build_allocation(
+    ctx: &Ctx<'_>,
+    names: &[String],
+    coils: &[RigCoil],
+) -> Result<Vec<usize>, RigFileError> {
+    if names.is_empty() {
+        return Err(ctx.err(
+            "electromagnet.allocation_coils",
+            "must name at least one coil",
+        ));
+    }
+    let mut ids = Vec::with_capacity(names.len());
+    for (k, name) in names.iter().enumerate() {
+        let field = format!("electromagnet.allocation_coils[{k}]");
+        let Some(id) = coils.iter().position(|c| &c.name == name) else {
+            return Err(ctx.err(field, format!("no coil named {name:?} in [[coils]]")));
+        };
+        if ids.contains(&id) {
+            return Err(ctx.err(field, format!("{name:?} is listed twice")));
+        }
+        ids.push(id);
+    }
+    Ok(ids)
+}
+
+fn build_camera(ctx: &Ctx<'_>, c: &schema::CameraSection) -> Result<RigCamera, RigFileError> {
+    if c.width_px == 0 || c.height_px == 0 {
+        let key = if c.width_px == 0 {
+            "width_px"
+        } else {
+            "height_px"
+        };
+        return Err(ctx.err(format!("camera.{key}"), "must be > 0"));
+    }
+    if u64::from(c.width_px) * u64::from(c.height_px) > ImageGeometry::MAX_PIXELS {
+        return Err(ctx.err(
+            "camera.width_px",
+            format!(
+                "{}x{} px exceeds {} pixels",
+                c.width_px,
+                c.height_px,
+                ImageGeometry::MAX_PIXELS
+            ),
+        ));
+    }
+    require_positive(ctx, "camera.mm_per_px", c.mm_per_px)?;
+    if !finite(&c.origin_mm) {
+        return Err(ctx.err(
+            "camera.origin_mm",
+            format!("must be finite, got {}", fmt_vec(&c.origin_mm)),
+        ));
+    }
+    Ok(RigCamera {
+        geometry: ImageGeometry {
+            width_px: c.width_px,
+            height_px: c.height_px,
+            mm_per_px: c.mm_per_px,
+            origin_x_mm: c.origin_mm[0],
+            origin_y_mm: c.origin_mm[1],
+        },
+        pixel_format: match c.pixel_format {
+            schema::PixelFormatName::Rgb8 => CameraPixelFormat::Rgb8,
+            schema::PixelFormatName::Gray8 => CameraPixelFormat::Gray8,
+        },
+    })
+}
+
+/// The mask must cover exactly the camera's field of view: its size in pixels is the camera's
+/// field of view divided by `mask_mm_per_px` (a whole number within 1e-6 px), and its origin is
+/// the camera's within half a camera pixel.
+fn mask_geometry(
+    ctx: &Ctx<'_>,
+    p: &schema::PhantomSection,
+    camera: &ImageGeometry,
+) -> Result<ImageGeometry, RigFileError> {
+    require_positive(ctx, "phantom.mask_mm_per_px", p.mask_mm_per_px)?;
+    if !finite(&p.mask_origin_mm) {
+        return Err(ctx.err(
+            "phantom.mask_origin_mm",
+            format!("must be finite, got {}", fmt_vec(&p.mask_origin_mm)),
+        ));
+    }
+    let fov = [
+        f64::from(camera.width_px) * camera.mm_per_px,
+        f64::from(camera.height_px) * camera.mm_per_px,
+    ];
+    let mut size = [0u32; 2];
+    for (k, extent) in fov.iter().enumerate() {
+        let px = extent / p.mask_mm_per_px;
+        let whole = px.round();
+        if (px - whole).abs() > 1e-6 * px.max(1.0) || whole < 1.0 || whole > f64::from(u32::MAX) {
+            return Err(ctx.err(
+                "phantom.mask_mm_per_px",
+                format!(
+                    "the camera's field of view ({:.4} x {:.4} mm) is not a whole number of \
+                     {} mm mask pixels ({px:.4} px along {})",
+                    fov[0],
+                    fov[1],
+                    p.mask_mm_per_px,
+                    if k == 0 { "x" } else { "y" }
+                ),
+            ));
+        }
+        size[k] = whole as u32;
+    }
+    let tol = 0.5 * camera.mm_per_px;
+    if (p.mask_origin_mm[0] - camera.origin_x_mm).abs() > tol
+        || (p.mask_origin_mm[1] - camera.origin_y_mm).abs() > tol
+    {
+        return Err(ctx.err(
+            "phantom.mask_origin_mm",
+            format!(
+                "{} must equal camera.origin_mm [{}, {}] within half a camera pixel",
+                fmt_vec(&p.mask_origin_mm),
+                camera.origin_x_mm,
+                camera.origin_y_mm
+            ),
+        ));
+    }
+    let geometry = ImageGeometry {
+        width_px: size[0],
+        height_px: size[1],
+        mm_per_px: p.mask_mm_per_px,
+        origin_x_mm: p.mask_origin_mm[0],
+        origin_y_mm: p.mask_origin_mm[1],
+    };
+    geometry
+        .validate()
+        .map_err(|e| ctx.err("phantom.mask_mm_per_px", e.to_string()))?;
+    Ok(geometry)
+}
+
+fn build_phantom(
+    ctx: &Ctx<'_>,
+    p: &schema::PhantomSection,
+    camera: &RigCamera,
+) -> Result<RigPhantom, RigFileError> {
+    let geometry = mask_geometry(ctx, p, &camera.geometry)?;
+    let mask_path = ctx.resolve(&p.mask);
+    let mask = CanalMask::load_png(&mask_path, &geometry).map_err(|e| {
+        let message = match e {
+            MaskError::WrongSize { .. } => format!(
+                "{e} (the camera's {:.4} x {:.4} mm field of view at phantom.mask_mm_per_px = {})",
+                f64::from(geometry.width_px) * geometry.mm_per_px,
+                f64::from(geometry.height_px) * geometry.mm_per_px,
+                geometry.mm_per_px
+            ),
+            other => other.to_string(),
+        };
+        ctx.err("phantom.mask", message)
+    })?;
+
+    let mut port_names = HashSet::new();
+    let mut port = |kind: &str,
+                    i: usize,
+                    name: &str,
+                    position_mm: [f64; 2],
+                    direction: [f64; 2],
+                    diameter_mm: f64|
+     -> Result<(Vector2<f64>, Unit<Vector2<f64>>), RigFileError> {
+        let at = |key: &str| format!("phantom.{kind}[{i}].{key}");
+        check_name(ctx, &at("name"), name, &mut port_names)?;
+        if !finite(&position_mm) {
+            return Err(ctx.err(
+                at("position_mm"),
+                format!("must be finite, got {}", fmt_vec(&position_mm)),
+            ));
+        }
+        let position = mm2(position_mm);
+        if !mask.contains(&position) {
+            return Err(ctx.err(
+                at("position_mm"),
+                format!(
+                    "port {name:?} at {} mm is not on a canal pixel of the mask {}",
+                    fmt_vec(&position_mm),
+                    mask_path.display()
+                ),
+            ));
+        }
+        let dir = Vector2::from(direction);
+        let dir = match (finite(&direction), dir.try_normalize(1e-12)) {
+            (true, Some(unit)) => Unit::new_unchecked(unit),
+            _ => {
+                return Err(ctx.err(
+                    at("direction"),
+                    format!(
+                        "must be a finite non-zero vector, got {}",
+                        fmt_vec(&direction)
+                    ),
+                ))
+            }
+        };
+        require_positive(ctx, &at("diameter_mm"), diameter_mm)?;
+        Ok((position, dir))
+    };
+    let mut inlets = Vec::with_capacity(p.inlets.len());
+    for (i, s) in p.inlets.iter().enumerate() {
+        let (mouth_m, direction) = port(
+            "inlets",
+            i,
+            &s.name,
+            s.position_mm,
+            s.direction,
+            s.diameter_mm,
+        )?;
+        require_positive(ctx, &format!("phantom.inlets[{i}].length_mm"), s.length_mm)?;
+        inlets.push(Inlet {
+            name: s.name.clone(),
+            mouth_m,
+            direction,
+            diameter_m: s.diameter_mm / 1e3,
+            length_m: s.length_mm / 1e3,
+        });
+    }
+    let mut outlets = Vec::with_capacity(p.outlets.len());
+    for (i, s) in p.outlets.iter().enumerate() {
+        let (mouth_m, direction) = port(
+            "outlets",
+            i,
+            &s.name,
+            s.position_mm,
+            s.direction,
+            s.diameter_mm,
+        )?;
+        outlets.push(Outlet {
+            name: s.name.clone(),
+            mouth_m,
+            direction,
+            diameter_m: s.diameter_mm / 1e3,
+        });
+    }
+
+    let zones = build_zones(ctx, &p.zones, &mask)?;
+    let flow_conditions = build_flow(ctx, &p.flow)?;
+    Ok(RigPhantom {
+        mask_path,
+        mask,
+        inlets,
+        outlets,
+        zones,
+        flow_conditions,
+    })
+}
+
+/// Zones must lie on the phantom: every vertex within the mask's field of view (one camera
+/// pixel of slack, so a band may run to the image edge) and at least one canal pixel centre
+/// inside the polygon.
+fn build_zones(
+    ctx: &Ctx<'_>,
+    sections: &[schema::ZoneSection],
+    mask: &CanalMask,
+) -> Result<Vec<Zone>, RigFileError> {
+    let g = mask.geometry();
+    let lo = Vector2::new(
+        g.origin_x_mm,
+        g.origin_y_mm - f64::from(g.height_px) * g.mm_per_px,
+    );
+    let hi = Vector2::new(
+        g.origin_x_mm + f64::from(g.width_px) * g.mm_per_px,
+        g.origin_y_mm,
+    );
+    let slack = g.mm_per_px;
+    let mut names = HashSet::new();
+    let mut zones = Vec::with_capacity(sections.len());
+    for (i, z) in sections.iter().enumerate() {
+        let at = |key: &str| format!("phantom.zones[{i}].{key}");
+        check_name(ctx, &at("name"), &z.name, &mut names)?;
+        if z.polygon_mm.len() < 3 {
+            return Err(ctx.err(
+                at("polygon_mm"),
+                format!("needs at least 3 vertices, got {}", z.polygon_mm.len()),
+            ));
+        }
+        for (k, v) in z.polygon_mm.iter().enumerate() {
+            if !finite(v) {
+                return Err(ctx.err(
+                    at("polygon_mm"),
+                    format!("vertex {k} is not finite: {}", fmt_vec(v)),
+                ));
+            }
+            let outside = v[0] < lo.x - slack
+                || v[0] > hi.x + slack
+                || v[1] < lo.y - slack
+                || v[1] > hi.y + slack;
+            if outside {
+                return Err(ctx.err(
+                    at("polygon_mm"),
+                    format!(
+                        "vertex {k} {} mm lies outside the mask's field of view \
+                         (x {:.2}..{:.2} mm, y {:.2}..{:.2} mm)",
+                        fmt_vec(v),
+                        lo.x,
+                        hi.x,
+                        lo.y,
+                        hi.y
+                    ),
+                ));
+            }
+        }
+        let zone = Zone {
+            name: z.name.clone(),
+            kind: match z.kind {
+                schema::ZoneKindName::HighDisturbance => ZoneKind::HighDisturbance,
+                schema::ZoneKindName::Recirculation => ZoneKind::Recirculation,
+            },
+            polygon_m: z.polygon_mm.iter().map(|v| mm2(*v)).collect(),
+        };
+        if !covers_canal(&zone, mask) {
+            return Err(ctx.err(
+                at("polygon_mm"),
+                format!(
+                    "zone {:?} covers no canal pixel of the mask (it lies outside the canal)",
+                    z.name
+                ),
+            ));
+        }
+        zones.push(zone);
+    }
+    Ok(zones)
+}
+
+/// Whether some canal pixel centre lies in `zone` (scans the polygon's bounding box only).
+fn covers_canal(zone: &Zone, mask: &CanalMask) -> bool {
+    let g = mask.geometry();
+    let (lo, hi) = zone.bounds();
+    let (c0, r1) = g.world_to_px(&lo);
+    let (c1, r0) = g.world_to_px(&hi);
+    let clamp_col = |v: f64| v.clamp(0.0, f64::from(g.width_px) - 1.0) as i64;
+    let clamp_row = |v: f64| v.clamp(0.0, f64::from(g.height_px) - 1.0) as i64;
+    for row in clamp_row(r0.floor())..=clamp_row(r1.ceil()) {
+        for col in clamp_col(c0.floor())..=clamp_col(c1.ceil()) {
+            if mask.is_canal_px(col, row) && zone.contains(&g.px_to_world(col as f64, row as f64)) {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+/// A `# key = value` header entry of a flow map, as a number.
+fn flow_header_value(text: &str, key: &str) -> Option<f64> {
+    text.lines()
+        .map_while(|l| l.trim().strip_prefix('#'))
+        .filter_map(|kv| kv.split_once('='))
+        .find(|(k, _)| k.trim() == key)
+        .and_then(|(_, v)| v.trim().parse().ok())
+}
+
+fn build_flow(
+    ctx: &Ctx<'_>,
+    sections: &[schema::FlowSection],
+) -> Result<Vec<FlowCondition>, RigFileError> {
+    let mut names = HashSet::new();
+    let mut out = Vec::with_capacity(sections.len());
+    for (i, f) in sections.iter().enumerate() {
+        let at = |key: &str| format!("phantom.flow[{i}].{key}");
+        check_name(ctx, &at("name"), &f.name, &mut names)?;
+        require_positive(ctx, &at("flow_ml_min"), f.flow_ml_min)?;
+        require_positive(ctx, &at("viscosity_cp"), f.viscosity_cp)?;
+        let map_path = ctx.resolve(&f.map);
+        let text = std::fs::read_to_string(&map_path).map_err(|e| {
+            ctx.err(
+                at("map"),
+                format!("cannot read flow map {}: {e}", map_path.display()),
+            )
+        })?;
+        FlowMap::parse(&text).map_err(|e| {
+            ctx.err(
+                at("map"),
+                format!("{} is not a valid flow map: {e}", map_path.display()),
+            )
+        })?;
+        // A map that says which condition it was made for must agree with the rig file.
+        for (key, header_key, value) in [
+            ("flow_ml_min", "flow_ml_min", f.flow_ml_min),
+            ("viscosity_cp", "viscosity_cp", f.viscosity_cp),
+        ] {
+            if let Some(in_map) = flow_header_value(&text, header_key) {
+                if (in_map - value).abs() > 1e-3 * value.abs().max(in_map.abs()) {
+                    return Err(ctx.err(
+                        at(key),
+                        format!(
+                            "{value}, but the map {} was made for {header_key} = {in_map}",
+                            map_path.display()
+                        ),
+                    ));
+                }
+            }
+        }
+        out.push(FlowCondition {
+            name: f.name.clone(),
+            map_path,
+            flow_ml_min: f.flow_ml_min,
+            viscosity_pa_s: f.viscosity_cp * 1e-3,
+        });
+    }
+    Ok(out)
+}
+
+fn build_robot(ctx: &Ctx<'_>, r: &schema::RobotSection) -> Result<RobotParams, RigFileError> {
+    let robot = RobotParams {
+        magnet_moment_am2: r.magnet_moment_am2,
+        mass_kg: r.mass_kg,
+        added_mass_kg: r.added_mass_kg,
+        length_m: r.length_m,
+        diameter_m: r.diameter_m,
+    };
+    robot.validate().map_err(|e| match e {
+        RigError::Invalid { field, reason } => ctx.err(field, reason),
+        other => ctx.err("robot", other.to_string()),
+    })?;
+    Ok(robot)
+}

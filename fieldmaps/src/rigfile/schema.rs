@@ -1,0 +1,142 @@
+//! The rig file as written (serde, TOML). Every table denies unknown keys; nothing has a
+//! default except where FORMAT.md says so. Lengths are millimetres (`_mm`) except in `[robot]`,
+//! which is [`crate::rig::RobotParams`]'s SI form.
+
+use std::path::PathBuf;
+
+use serde::Deserialize;
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct RigFile {
+    pub format: String,
+    pub version: u32,
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    pub electromagnet: ElectromagnetSection,
+    /// Defaults to none so that "no coils" gets the clear count error, not a parse error.
+    #[serde(default)]
+    pub coils: Vec<CoilSection>,
+    pub camera: CameraSection,
+    pub phantom: PhantomSection,
+    pub robot: RobotSection,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ElectromagnetSection {
+    pub field_model: String,
+    pub max_total_power_w: f64,
+    pub allocation_coils: Vec<String>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct CoilSection {
+    pub name: String,
+    pub center_mm: [f64; 3],
+    pub axis: [f64; 3],
+    pub turns: Option<f64>,
+    pub winding: Option<WindingSection>,
+    pub resistance_ohm: f64,
+    pub max_current_a: f64,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct WindingSection {
+    pub inner_radius_mm: f64,
+    pub outer_radius_mm: f64,
+    pub length_mm: f64,
+    pub radial_filaments: u32,
+    pub axial_filaments: u32,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub(crate) enum PixelFormatName {
+    Rgb8,
+    Gray8,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct CameraSection {
+    pub width_px: u32,
+    pub height_px: u32,
+    pub pixel_format: PixelFormatName,
+    pub mm_per_px: f64,
+    pub origin_mm: [f64; 2],
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct PhantomSection {
+    pub mask: PathBuf,
+    pub mask_mm_per_px: f64,
+    pub mask_origin_mm: [f64; 2],
+    #[serde(default)]
+    pub inlets: Vec<InletSection>,
+    #[serde(default)]
+    pub outlets: Vec<OutletSection>,
+    #[serde(default)]
+    pub zones: Vec<ZoneSection>,
+    #[serde(default)]
+    pub flow: Vec<FlowSection>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct InletSection {
+    pub name: String,
+    pub position_mm: [f64; 2],
+    pub direction: [f64; 2],
+    pub diameter_mm: f64,
+    pub length_mm: f64,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct OutletSection {
+    pub name: String,
+    pub position_mm: [f64; 2],
+    pub direction: [f64; 2],
+    pub diameter_mm: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub(crate) enum ZoneKindName {
+    HighDisturbance,
+    Recirculation,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ZoneSection {
+    pub name: String,
+    pub kind: ZoneKindName,
+    pub polygon_mm: Vec<[f64; 2]>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct FlowSection {
+    pub name: String,
+    pub map: PathBuf,
+    pub flow_ml_min: f64,
+    pub viscosity_cp: f64,
+}
+
+/// [`crate::rig::RobotParams`] with every field required: a rig file that forgot its magnet
+/// should not silently get the paper's.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct RobotSection {
+    pub magnet_moment_am2: f64,
+    pub mass_kg: f64,
+    pub added_mass_kg: f64,
+    pub length_m: f64,
+    pub diameter_m: f64,
+}

@@ -1,0 +1,57 @@
+//! `fieldgen rig-check` on the committed paper rig and on a broken copy of it.
+use std::path::Path;
+use std::process::Command;
+
+fn fieldgen(rig: &Path) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_fieldgen"))
+        .args(["rig-check", "--rig"])
+        .arg(rig)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn paper_rig_checks_out() {
+    let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fieldmaps/rigs/paper.toml");
+    let out = fieldgen(&rig);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for needle in [
+        "coils: 12",
+        "allocation: 8 coils",
+        "camera: 1020x1020 px",
+        "inlet-1",
+        "zone",
+        "flow conditions: 4",
+        "rig ok",
+    ] {
+        assert!(stdout.contains(needle), "{needle} missing from\n{stdout}");
+    }
+}
+
+#[test]
+fn bad_rig_names_file_and_field() {
+    let paper = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fieldmaps/rigs/paper.toml");
+    let text =
+        std::fs::read_to_string(&paper)
+            .unwrap()
+            .replacen("turns = 191.788", "turns = 0.0", 1);
+    // Next to paper.toml would let its relative paths resolve, but the tests must not write
+    // into the source tree; the coil error comes before any data file is opened.
+    let dir = std::env::temp_dir().join(format!("millinav-rig-check-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let bad = dir.join("bad.toml");
+    std::fs::write(&bad, text).unwrap();
+    let out = fieldgen(&bad);
+    std::fs::remove_dir_all(&dir).ok();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains(&format!("{}: coils[1].turns: must be > 0", bad.display())),
+        "{stderr}"
+    );
+}
