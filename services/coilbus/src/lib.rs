@@ -14,12 +14,10 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use millinav_kit::iceoryx2::prelude::*;
-use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
 use millinav_kit::ports::{Inbox, Outbox};
 use millinav_kit::recording;
 use millinav_kit::scenario::Scenario;
-use millinav_kit::Runtime;
+use millinav_kit::{ConfigError, Runtime, ServiceLoop};
 use serde::{Deserialize, Serialize};
 use shm_schemas::{
     deadlines, services, CoilCommand, CoilStatus, ContractError, ControlMode, Flag, LinkState,
@@ -301,10 +299,57 @@ fn log_output(rec: &millinav_kit::rerun::RecordingStream, out: &Output, bus: &Co
     );
 }
 
-/// The coilbus process loop.
-pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
+/// Parses and validates the `[coilbus]` table. The serial port is not checked here: the
+/// emulated one appears when the plant starts, and a real one may be plugged in later (the
+/// link reconnects). Every failure is a configuration error naming the scenario and the field.
+pub fn prepare(scenario: &Scenario) -> Result<CoilbusConfig, ConfigError> {
     let config: CoilbusConfig = scenario.section("coilbus")?;
-    config.validate()?;
+    let field = |name: &str| format!("scenario {}: [coilbus] {name}", scenario.path.display());
+    let positive = |name: &str, value: u64| {
+        if value > 0 {
+            Ok(())
+        } else {
+            Err(ConfigError::new(format!("{} must be > 0", field(name))))
+        }
+    };
+    positive("baud", u64::from(config.baud))?;
+    positive("command_deadline_ms", config.command_deadline_ms)?;
+    // A zero tick would make the loop spin.
+    positive("tick_ms", config.tick_ms)?;
+    if config.port.trim().is_empty() {
+        return Err(ConfigError::new(format!(
+            "{} must be a serial device or \"auto\"",
+            field("port")
+        )));
+    }
+    let limits = &config.limits;
+    for (name, value) in [
+        ("limits.max_current_a", limits.max_current_a),
+        ("limits.max_total_power_w", limits.max_total_power_w),
+        ("limits.coil_resistance_ohm", limits.coil_resistance_ohm),
+    ] {
+        if !(value.is_finite() && value > 0.0) {
+            return Err(ConfigError::new(format!(
+                "{} must be > 0, got {value}",
+                field(name)
+            )));
+        }
+    }
+    config
+        .validate()
+        .map_err(|e| ConfigError::new(format!("{}: {e}", field("coil_count"))))?;
+    Ok(config)
+}
+
+/// Validates the `[coilbus]` table (what `--check` runs).
+pub fn check_config(scenario: &Scenario) -> Result<(), ConfigError> {
+    prepare(scenario).map(drop)
+}
+
+/// The coilbus process: on every wake (a command, its deadline, or the tick) it services the
+/// serial link, applies the newest fresh command or keeps the coils at zero, and publishes its
+/// status. On the way out it zeroes the coils.
+pub fn run(rt: &mut Runtime, _scenario: &Scenario, config: CoilbusConfig) -> anyhow::Result<()> {
     let port_path = config.port_path(&rt.env.run_dir);
     let commands = Inbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
     let status_out = Outbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
@@ -321,85 +366,22 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     );
     let run_start = Instant::now();
 
-    let waitset = WaitSetBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(millinav_kit::iox("waitset"))?;
-    let command_guard = waitset
-        .attach_deadline(&commands.listener, bus.deadline)
-        .map_err(millinav_kit::iox("attach command deadline"))?;
-    let tick_guard = waitset
-        .attach_interval(Duration::from_millis(config.tick_ms))
-        .map_err(millinav_kit::iox("attach tick"))?;
+    let mut service_loop = ServiceLoop::new();
+    service_loop.input_with_deadline(&commands, bus.deadline);
+    service_loop.output(&status_out);
+    service_loop.tick_every(Duration::from_millis(config.tick_ms));
     tracing::info!(port = %port_path.display(), "coilbus ready");
-
-    loop {
-        let mut command_event = false;
-        let mut deadline_missed = false;
-        let result = waitset
-            .wait_and_process_once_with_timeout(
-                |id| {
-                    if id.has_event_from(&command_guard) {
-                        command_event = true;
-                    } else if id.has_missed_deadline(&command_guard) {
-                        deadline_missed = true;
-                    } else if id.has_event_from(&tick_guard) {
-                        // housekeeping below runs on every wake-up anyway
-                    }
-                    CallbackProgression::Continue
-                },
-                Duration::from_millis(config.tick_ms),
-            )
-            .map_err(millinav_kit::iox("waitset"))?;
-        if matches!(
-            result,
-            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
-        ) {
-            break;
-        }
+    service_loop.run(&mut rt.heartbeat, |_| {
         let now = Instant::now();
-        link.ensure_open(now);
-        for packet in link.poll() {
-            if let Message::Ack { status, .. } = packet.message {
-                bus.on_ack(status);
-            }
-        }
-        log_link_events(&mut link_log, link.take_events());
-        if deadline_missed {
-            rt.heartbeat.deadline_misses += 1;
-        }
-        // Even without an event, drain: a listener left undrained makes the WaitSet spin.
+        service_link(&mut link, &mut bus, &mut link_log, now);
         let received = commands.receive_all()?;
-        let _ = command_event;
-        // Only the newest fresh command matters: older ones in the queue are superseded.
-        let mut sent = None;
-        if let Some(zero) = bus.start_zero() {
-            if write_output(&mut link, &mut bus, &zero) {
-                bus.start_zero_sent();
-                sent = Some(zero);
-            }
-        } else if let Some((cmd, out)) = received
-            .iter()
-            .rev()
-            .find_map(|cmd| bus.on_command(cmd).map(|out| (cmd, out)))
-        {
-            if write_output(&mut link, &mut bus, &out) {
-                bus.applied(cmd, &out, now);
-                sent = Some(out);
-            }
-        }
-        if sent.is_none() {
-            if let Some(zero) = bus.on_tick(now) {
-                write_output(&mut link, &mut bus, &zero);
-                sent = Some(zero);
-            }
-        }
-        if let Some(out) = &sent {
+        if let Some(out) = apply_commands(&mut link, &mut bus, &received, now) {
             recording::set_time(
                 &rt.rec,
                 now.duration_since(run_start).as_nanos() as u64,
                 out.frame_seq.min(i64::MAX as u64),
             );
-            log_output(&rt.rec, out, &bus);
+            log_output(&rt.rec, &out, &bus);
         }
         bus.status.link_state = if link.is_open() {
             LinkState::Connected as u32
@@ -409,15 +391,58 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         bus.status.rx_errors = link.decoder_errors();
         bus.status.reconnects = link.reconnects;
         let _ = status_out.send(bus.status);
-        rt.heartbeat.beat();
-        commands_update(&status_out, rt);
-    }
+        anyhow::Ok(())
+    })?;
     // Safe state first: zero the coils before leaving.
     let out = bus.safe_zero();
     write_output(&mut link, &mut bus, &out);
     tracing::info!("coilbus stopped; coils zeroed");
-    let _ = rt.rec.flush_blocking();
     Ok(())
+}
+
+/// Reopens a lost link, counts the board's acknowledgements and logs link changes.
+fn service_link(
+    link: &mut SerialLink,
+    bus: &mut CoilBus,
+    link_log: &mut impl std::io::Write,
+    now: Instant,
+) {
+    link.ensure_open(now);
+    for packet in link.poll() {
+        if let Message::Ack { status, .. } = packet.message {
+            bus.on_ack(status);
+        }
+    }
+    log_link_events(link_log, link.take_events());
+}
+
+/// Writes the start-up safe zero until it went out once, then the newest fresh command of
+/// `received` (older ones in the queue are superseded), or the safe zero when the command
+/// deadline has passed; returns what went out.
+fn apply_commands(
+    link: &mut SerialLink,
+    bus: &mut CoilBus,
+    received: &[CoilCommand],
+    now: Instant,
+) -> Option<Output> {
+    if let Some(zero) = bus.start_zero() {
+        if write_output(link, bus, &zero) {
+            bus.start_zero_sent();
+            return Some(zero);
+        }
+    } else if let Some((cmd, out)) = received
+        .iter()
+        .rev()
+        .find_map(|cmd| bus.on_command(cmd).map(|out| (cmd, out)))
+    {
+        if write_output(link, bus, &out) {
+            bus.applied(cmd, &out, now);
+            return Some(out);
+        }
+    }
+    let zero = bus.on_tick(now)?;
+    write_output(link, bus, &zero);
+    Some(zero)
 }
 
 fn log_link_events(log: &mut impl std::io::Write, events: Vec<link::LinkEvent>) {
@@ -427,19 +452,6 @@ fn log_link_events(log: &mut impl std::io::Write, events: Vec<link::LinkEvent>) 
         let _ = writeln!(log, "{},{},{detail}", event.monotonic_ns, event.kind);
     }
     let _ = log.flush();
-}
-
-fn commands_update(status_out: &Outbox<CoilStatus>, rt: &Runtime) {
-    status_out.update_connections();
-    rt.heartbeat.update_connections();
-}
-
-/// Entry point shared by the binary: parse args, start, run.
-pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()> {
-    let mut rt = Runtime::start(shm_schemas::ServiceId::Coilbus)?;
-    let scenario = Scenario::load(scenario_path)
-        .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
-    run(&mut rt, &scenario)
 }
 
 #[cfg(test)]
@@ -490,11 +502,11 @@ mod tests {
 
     #[test]
     fn a_started_coilbus_zeroes_the_board_before_any_command() {
-        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100));
+        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100), COILS);
         let zero = bus
             .start_zero()
             .expect("a fresh coilbus starts with a zero");
-        assert_eq!(zero.currents_a, [0.0; COIL_COUNT]);
+        assert_eq!(zero.currents(), [0.0; COILS]);
         assert_eq!(zero.flags, FLAG_SAFE_ZERO);
         // Not written yet (link closed): still owed.
         assert!(bus.start_zero().is_some());
@@ -545,6 +557,44 @@ mod tests {
             .sum();
         assert!(power <= limits.max_total_power_w * (1.0 + 1e-9));
         assert_eq!(bus.status.clamp_events, 1);
+    }
+
+    /// A scenario with `coilbus_table` as its `[coilbus]`.
+    fn scenario_with(coilbus_table: &str) -> Scenario {
+        let text = format!(
+            "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
+             [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n[coilbus]\n{coilbus_table}\n"
+        );
+        Scenario::parse(&text, std::path::Path::new("coilbus-test.toml")).unwrap()
+    }
+
+    #[test]
+    fn check_config_accepts_defaults_and_a_device() {
+        check_config(&scenario_with("")).unwrap();
+        check_config(&scenario_with("port = \"/dev/ttyACM0\"\nbaud = 9600")).unwrap();
+    }
+
+    #[test]
+    fn check_config_rejects_typos_and_bad_values() {
+        let error = check_config(&scenario_with("prot = \"auto\""))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("[coilbus]") && error.contains("prot"),
+            "{error}"
+        );
+        let error = check_config(&scenario_with("[coilbus.limits]\nmax_curent_a = 1.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("max_curent_a"), "{error}");
+        let error = check_config(&scenario_with("tick_ms = 0"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("[coilbus] tick_ms"), "{error}");
+        let error = check_config(&scenario_with("[coilbus.limits]\nmax_current_a = nan"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("[coilbus] limits.max_current_a"), "{error}");
     }
 
     #[test]

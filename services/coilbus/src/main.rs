@@ -1,17 +1,24 @@
 //! coilbus process: CoilCommand → clamped currents → Teensy serial link.
 use clap::Parser;
+use millinav_kit::{service_main, ServiceArgs};
+use shm_schemas::ServiceId;
 
 /// Drives the coil amplifiers: takes commands from control, enforces limits and deadlines, and
 /// writes currents to the Teensy over a serial port (real, or the twin's emulated one).
+/// Scenario table: [coilbus] (port, baud, limits).
 #[derive(Parser)]
 #[command(name = "millinav-coilbus", version)]
 struct Args {
-    /// Scenario TOML file; its [coilbus] table configures port, baud and limits.
-    #[arg(long)]
-    scenario: std::path::PathBuf,
+    #[command(flatten)]
+    service: ServiceArgs,
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    millinav_coilbus::main_with_scenario(&args.scenario)
+    service_main(
+        ServiceId::Coilbus,
+        &args.service,
+        millinav_coilbus::prepare,
+        millinav_coilbus::run,
+    )
 }

@@ -8,7 +8,6 @@ pub mod reference;
 
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
 use fieldmaps::allocation::{
     actuation_matrix, allocate_constrained, allocate_limited, ConstrainedSettings, ALL_COILS,
     DEFAULT_PLANAR_COILS,
@@ -18,13 +17,11 @@ use fieldmaps::phantom::Phantom;
 use fieldmaps::physics;
 use fieldmaps::rig::{CoilLimits, RobotParams};
 use millinav_kit::contract::ContractViolations;
-use millinav_kit::iceoryx2::prelude::*;
-use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
 use millinav_kit::ports::{Inbox, Outbox};
 use millinav_kit::recording;
 use millinav_kit::rerun;
 use millinav_kit::scenario::Scenario;
-use millinav_kit::Runtime;
+use millinav_kit::{ConfigContext, ConfigError, Runtime, ServiceLoop};
 use nalgebra::{DVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 use shm_schemas::{
@@ -360,20 +357,70 @@ impl ControlLoop {
     }
 }
 
-/// Builds the loop a scenario describes.
-pub fn build_loop(scenario: &Scenario, incarnation: u64) -> anyhow::Result<ControlLoop> {
+/// What the `[control]` table and the trajectory configure, validated.
+pub struct ControlSetup {
+    pub config: ControlConfig,
+    pub reference: Reference,
+}
+
+impl ControlSetup {
+    /// The loop for a fluid of `viscosity_pa_s`, answering as control incarnation `incarnation`.
+    pub fn into_loop(self, viscosity_pa_s: f64, incarnation: u64) -> ControlLoop {
+        ControlLoop::new(self.config, self.reference, viscosity_pa_s, incarnation)
+    }
+}
+
+/// Parses and validates the `[control]` table and the reference trajectory. Every failure is a
+/// configuration error naming the scenario and the field.
+pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
     let config: ControlConfig = scenario.section("control")?;
+    let field = |name: &str| format!("scenario {}: [control] {name}", scenario.path.display());
+    let at_least = |name: &str, value: f64, min: f64, strict: bool| {
+        let fine = value.is_finite() && if strict { value > min } else { value >= min };
+        if fine {
+            Ok(())
+        } else {
+            let relation = if strict { ">" } else { ">=" };
+            Err(ConfigError::new(format!(
+                "{} must be {relation} {min}, got {value}",
+                field(name)
+            )))
+        }
+    };
+    at_least("hold_timeout_ms", config.hold_timeout_ms, 0.0, false)?;
+    at_least("max_speed_mps", config.max_speed_mps, 0.0, true)?;
+    at_least("velocity_filter_ms", config.velocity_filter_ms, 0.0, false)?;
+    at_least("field_magnitude_mt", config.field_magnitude_mt, 0.0, false)?;
+    at_least("omega0_n_per_t", config.omega0_n_per_t, 0.0, true)?;
+    at_least("field_row_weight", config.field_row_weight, 0.0, true)?;
+    if !config.field_heading_deg.is_finite() {
+        return Err(ConfigError::new(format!(
+            "{} must be finite, got {}",
+            field("field_heading_deg"),
+            config.field_heading_deg
+        )));
+    }
+    config.limits.validate().config_context(field("limits"))?;
     let reference = Reference::new(
         &scenario.waypoints_m(),
         scenario.trajectory.speed_mm_s * 1e-3,
         scenario.trajectory.start_time_s,
-    )?;
-    Ok(ControlLoop::new(
-        config,
-        reference,
-        scenario.viscosity_pa_s(),
-        incarnation,
-    ))
+    )
+    .config_context(format!(
+        "scenario {}: [trajectory]",
+        scenario.path.display()
+    ))?;
+    Ok(ControlSetup { config, reference })
+}
+
+/// Validates the `[control]` table and the trajectory (what `--check` runs).
+pub fn check_config(scenario: &Scenario) -> Result<(), ConfigError> {
+    prepare(scenario).map(drop)
+}
+
+/// Builds the loop a scenario describes.
+pub fn build_loop(scenario: &Scenario, incarnation: u64) -> anyhow::Result<ControlLoop> {
+    Ok(prepare(scenario)?.into_loop(scenario.viscosity_pa_s(), incarnation))
 }
 
 fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
@@ -427,6 +474,12 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
 /// Without flow estimates for this long, control commands the safe state.
 pub const FLOW_LOST_AFTER: Duration = Duration::from_millis(50);
 
+/// Flow estimates kept for matching: only recent ones can match a new pose.
+const FLOW_CACHE_LEN: usize = 16;
+
+/// A warning is logged for the first missing flow estimate, then for every this many.
+const WARN_EVERY_FLOW_MISSES: u64 = 100;
+
 /// Waits (bounded) for the flow estimate made for the frame of `stamp`.
 fn flow_for(
     flows: &Inbox<FlowEstimate>,
@@ -437,9 +490,8 @@ fn flow_for(
     let deadline = Instant::now() + timeout;
     loop {
         cache.extend(flows.receive_all()?);
-        // Keep the cache small: only recent estimates can match a new pose.
-        if cache.len() > 16 {
-            cache.drain(..cache.len() - 16);
+        if cache.len() > FLOW_CACHE_LEN {
+            cache.drain(..cache.len() - FLOW_CACHE_LEN);
         }
         if let Some(found) = cache.iter().rev().find(|f| f.stamp.same_frame(stamp)) {
             return Ok(Some(*found));
@@ -448,23 +500,15 @@ fn flow_for(
         if now >= deadline {
             return Ok(None);
         }
-        let _ = flows.listener.timed_wait(|_| {}, deadline - now);
+        flows.wait(deadline - now);
     }
 }
 
-/// The control process loop.
-pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
-    let mut control = build_loop(scenario, rt.env.incarnation)?;
+/// The control process: each new pose (with the flow estimate made for it) gets a command.
+pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow::Result<()> {
+    let mut control = setup.into_loop(scenario.viscosity_pa_s(), rt.env.incarnation);
     tracing::info!(controller = control.controller_name(), "control ready");
-    let path: Vec<[f32; 2]> = control
-        .reference
-        .waypoints()
-        .iter()
-        .map(|p| [(p.x * 1e3) as f32, (p.y * 1e3) as f32])
-        .collect();
-    let _ = rt
-        .rec
-        .log_static("world/planned_path", &rerun::LineStrips2D::new([path]));
+    log_planned_path(&rt.rec, &control.reference);
     let poses = Inbox::<Pose>::new(&rt.node, services::POSE)?;
     let flows = Inbox::<FlowEstimate>::new(&rt.node, services::FLOW)?;
     let commands = Outbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
@@ -474,43 +518,15 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
     // bring the coils to zero within one command deadline, like losing the poses does.
     let mut last_flow = Instant::now();
 
-    let waitset = WaitSetBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(millinav_kit::iox("waitset"))?;
-    let pose_guard = waitset
-        .attach_deadline(&poses.listener, deadlines::POSE)
-        .map_err(millinav_kit::iox("attach pose deadline"))?;
-    let _tick = waitset
-        .attach_interval(deadlines::HEARTBEAT_PERIOD)
-        .map_err(millinav_kit::iox("attach tick"))?;
-    loop {
-        let mut missed = false;
-        let result = waitset
-            .wait_and_process_once_with_timeout(
-                |id| {
-                    if id.has_missed_deadline(&pose_guard) {
-                        missed = true;
-                    }
-                    CallbackProgression::Continue
-                },
-                Duration::from_millis(100),
-            )
-            .map_err(millinav_kit::iox("waitset"))?;
-        if matches!(
-            result,
-            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
-        ) {
-            break;
-        }
-        if missed {
-            rt.heartbeat.deadline_misses += 1;
+    let mut service_loop = ServiceLoop::new();
+    let pose_input = service_loop.input_with_deadline(&poses, deadlines::POSE);
+    service_loop.output(&commands);
+    service_loop.run(&mut rt.heartbeat, |wake| {
+        if wake.missed_deadline(pose_input) {
             tracing::debug!("no pose within {:?}", deadlines::POSE);
         }
-        rt.heartbeat.beat();
-        commands.update_connections();
-        rt.heartbeat.update_connections();
         let Some(pose) = poses.latest()? else {
-            continue;
+            return Ok(());
         };
         let flow = flow_for(
             &flows,
@@ -520,7 +536,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         )?;
         if flow.is_none() {
             flow_misses += 1;
-            if flow_misses == 1 || flow_misses.is_multiple_of(100) {
+            if flow_misses == 1 || flow_misses.is_multiple_of(WARN_EVERY_FLOW_MISSES) {
                 tracing::warn!(
                     seq = pose.stamp.seq,
                     flow_misses,
@@ -539,16 +555,18 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
         commands.send(decision.command)?;
         recording::set_time(&rt.rec, pose.stamp.capture_time_ns, pose.stamp.seq);
         log_decision(&rt.rec, &pose, &decision);
-    }
-    let _ = rt.rec.flush_blocking();
+        anyhow::Ok(())
+    })?;
     Ok(())
 }
 
-pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()> {
-    let mut rt = Runtime::start(shm_schemas::ServiceId::Control)?;
-    let scenario = Scenario::load(scenario_path)
-        .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
-    run(&mut rt, &scenario)
+fn log_planned_path(rec: &rerun::RecordingStream, reference: &Reference) {
+    let path: Vec<[f32; 2]> = reference
+        .waypoints()
+        .iter()
+        .map(|p| [(p.x * 1e3) as f32, (p.y * 1e3) as f32])
+        .collect();
+    let _ = rec.log_static("world/planned_path", &rerun::LineStrips2D::new([path]));
 }
 
 #[cfg(test)]
@@ -624,6 +642,66 @@ mod tests {
         p.valid = Flag::FALSE;
         let d = c.step(&p, None);
         assert_ne!(mode(&d), ControlMode::Track);
+    }
+
+    /// A scenario file in a directory of its own, with `control_table` as its `[control]`.
+    fn scenario_with(name: &str, control_table: &str) -> Scenario {
+        let dir =
+            std::env::temp_dir().join(format!("millinav-control-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let text = format!(
+            "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
+             [trajectory]\nwaypoints_mm = [[-18.0, 12.0], [-12.0, 8.0]]\n\
+             [control]\n{control_table}\n"
+        );
+        Scenario::parse(&text, &dir.join("scenario.toml")).unwrap()
+    }
+
+    #[test]
+    fn check_config_accepts_good_tables() {
+        check_config(&scenario_with("good", "controller = \"pid\"")).unwrap();
+        check_config(&scenario_with(
+            "smc",
+            "controller = \"smc-dob\"\n[control.smc]",
+        ))
+        .unwrap();
+    }
+
+    #[test]
+    fn check_config_rejects_typos_and_bad_values() {
+        let error = check_config(&scenario_with("typo", "controler = \"pid\""))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("[control]") && error.contains("controler"),
+            "{error}"
+        );
+
+        let error = check_config(&scenario_with("kind", "controller = \"magic\""))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("magic"), "{error}");
+
+        let error = check_config(&scenario_with("nested", "[control.pid]\nkpp = 1.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("kpp"), "{error}");
+
+        let error = check_config(&scenario_with("speed", "max_speed_mps = -1.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("[control] max_speed_mps"), "{error}");
+
+        let error = check_config(&scenario_with(
+            "limits",
+            "[control.limits]\nmax_current_a = 0.0",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            error.contains("[control] limits") && error.contains("max_current_a"),
+            "{error}"
+        );
     }
 
     #[test]

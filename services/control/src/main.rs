@@ -1,16 +1,23 @@
 //! control process (thin: all logic lives in the library).
 use clap::Parser;
+use millinav_kit::{service_main, ServiceArgs};
+use shm_schemas::ServiceId;
 
-/// Tracks the reference trajectory: Pose + FlowEstimate in, CoilCommand out.
+/// Tracks the reference trajectory: Pose + FlowEstimate in, CoilCommand out. Scenario table:
+/// [control].
 #[derive(Parser)]
 #[command(name = "millinav-control", version)]
 struct Args {
-    /// Scenario TOML file (the run, fluid and trajectory, plus a [control] table).
-    #[arg(long)]
-    scenario: std::path::PathBuf,
+    #[command(flatten)]
+    service: ServiceArgs,
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    millinav_control::main_with_scenario(&args.scenario)
+    service_main(
+        ServiceId::Control,
+        &args.service,
+        millinav_control::prepare,
+        millinav_control::run,
+    )
 }

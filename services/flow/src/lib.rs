@@ -2,18 +2,14 @@
 //! robot's estimated position. It never sees the true (pulsatile, perturbed) flow.
 
 use std::path::PathBuf;
-use std::time::Duration;
 
-use anyhow::Context;
 use fieldmaps::flowmap::FlowMap;
 use millinav_kit::contract::ContractViolations;
-use millinav_kit::iceoryx2::prelude::*;
-use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
 use millinav_kit::ports::{Inbox, Outbox};
 use millinav_kit::recording;
 use millinav_kit::rerun;
 use millinav_kit::scenario::Scenario;
-use millinav_kit::Runtime;
+use millinav_kit::{ConfigContext, ConfigError, Runtime, ServiceLoop};
 use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
 use shm_schemas::{deadlines, services, zone, Flag, FlowEstimate, Pose};
@@ -135,93 +131,141 @@ impl FlowEstimator {
     }
 }
 
-pub fn load_estimator(scenario: &Scenario) -> anyhow::Result<FlowEstimator> {
+/// Loads what the `[flow]` table names: its config and the steady map (`FlowMap::zero` when
+/// none). Every failure is a configuration error naming the scenario, the field and the file.
+pub fn prepare(scenario: &Scenario) -> Result<FlowEstimator, ConfigError> {
     let config: FlowConfig = scenario.section("flow")?;
+    let field = |name: &str| format!("scenario {}: [flow] {name}", scenario.path.display());
+    for (name, band) in [
+        ("high_disturbance_y_mm", config.high_disturbance_y_mm),
+        ("high_disturbance_x_mm", config.high_disturbance_x_mm),
+        ("recirculation_y_mm", config.recirculation_y_mm),
+        ("recirculation_x_mm", config.recirculation_x_mm),
+    ] {
+        if band.iter().any(|v| !v.is_finite()) {
+            return Err(ConfigError::new(format!(
+                "{} = {band:?} must hold finite numbers",
+                field(name)
+            )));
+        }
+    }
+    if !(config.arrow_spacing_mm.is_finite() && config.arrow_spacing_mm > 0.0) {
+        return Err(ConfigError::new(format!(
+            "{} must be > 0, got {}",
+            field("arrow_spacing_mm"),
+            config.arrow_spacing_mm
+        )));
+    }
     let map = match &config.map {
         None => FlowMap::zero(),
-        Some(path) => FlowMap::load(&scenario.resolve(path))?,
+        Some(path) => FlowMap::load(&scenario.resolve(path)).config_context(field("map"))?,
     };
     Ok(FlowEstimator::new(map, config))
 }
 
-/// The flow process loop.
-pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
-    let estimator = load_estimator(scenario)?;
+/// Validates the `[flow]` table and the flow map it names (what `--check` runs).
+pub fn check_config(scenario: &Scenario) -> Result<(), ConfigError> {
+    prepare(scenario).map(drop)
+}
+
+pub fn load_estimator(scenario: &Scenario) -> anyhow::Result<FlowEstimator> {
+    Ok(prepare(scenario)?)
+}
+
+/// The flow process: every pose gets its estimate (control waits for the one matching its
+/// pose).
+pub fn run(rt: &mut Runtime, _scenario: &Scenario, estimator: FlowEstimator) -> anyhow::Result<()> {
     estimator.log_field(&rt.rec);
     let poses = Inbox::<Pose>::new(&rt.node, services::POSE)?;
     let estimates = Outbox::<FlowEstimate>::new(&rt.node, services::FLOW)?;
     let mut violations = ContractViolations::default();
-    let waitset = WaitSetBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(millinav_kit::iox("waitset"))?;
-    let pose_guard = waitset
-        .attach_deadline(&poses.listener, deadlines::POSE)
-        .map_err(millinav_kit::iox("attach pose deadline"))?;
-    let _tick = waitset
-        .attach_interval(deadlines::HEARTBEAT_PERIOD)
-        .map_err(millinav_kit::iox("attach tick"))?;
-    loop {
-        let mut missed = false;
-        let result = waitset
-            .wait_and_process_once_with_timeout(
-                |id| {
-                    if id.has_missed_deadline(&pose_guard) {
-                        missed = true;
-                    }
-                    CallbackProgression::Continue
-                },
-                Duration::from_millis(100),
-            )
-            .map_err(millinav_kit::iox("waitset"))?;
-        if matches!(
-            result,
-            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
-        ) {
-            break;
-        }
-        if missed {
-            rt.heartbeat.deadline_misses += 1;
-        }
-        rt.heartbeat.beat();
-        estimates.update_connections();
-        rt.heartbeat.update_connections();
-        // Every pose gets its estimate: control waits for the one matching its pose.
+    let mut service_loop = ServiceLoop::new();
+    service_loop.input_with_deadline(&poses, deadlines::POSE);
+    service_loop.output(&estimates);
+    service_loop.run(&mut rt.heartbeat, |_| {
         for pose in poses.receive_all()? {
             let _ = violations.check(services::POSE, pose.validity());
             let estimate = estimator.estimate(&pose);
             estimates.send(estimate)?;
             if estimate.valid == Flag::TRUE {
-                recording::set_time(&rt.rec, pose.stamp.capture_time_ns, pose.stamp.seq);
-                let _ = rt.rec.log(
-                    "world/flow_at_robot",
-                    &rerun::Arrows2D::from_vectors([[
-                        (estimate.velocity_mps[0] * 100.0) as f32,
-                        (estimate.velocity_mps[1] * 100.0) as f32,
-                    ]])
-                    .with_origins([[
-                        (pose.position_m[0] * 1e3) as f32,
-                        (pose.position_m[1] * 1e3) as f32,
-                    ]]),
-                );
-                recording::scalar(&rt.rec, "flow/speed_mps", estimate.speed_mps);
-                recording::scalar(&rt.rec, "flow/zone_flags", f64::from(estimate.zone_flags));
+                log_estimate(&rt.rec, &pose, &estimate);
             }
         }
-    }
-    let _ = rt.rec.flush_blocking();
+        anyhow::Ok(())
+    })?;
     Ok(())
 }
 
-pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()> {
-    let mut rt = Runtime::start(shm_schemas::ServiceId::Flow)?;
-    let scenario = Scenario::load(scenario_path)
-        .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
-    run(&mut rt, &scenario)
+fn log_estimate(rec: &rerun::RecordingStream, pose: &Pose, estimate: &FlowEstimate) {
+    recording::set_time(rec, pose.stamp.capture_time_ns, pose.stamp.seq);
+    let _ = rec.log(
+        "world/flow_at_robot",
+        &rerun::Arrows2D::from_vectors([[
+            (estimate.velocity_mps[0] * 100.0) as f32,
+            (estimate.velocity_mps[1] * 100.0) as f32,
+        ]])
+        .with_origins([[
+            (pose.position_m[0] * 1e3) as f32,
+            (pose.position_m[1] * 1e3) as f32,
+        ]]),
+    );
+    recording::scalar(rec, "flow/speed_mps", estimate.speed_mps);
+    recording::scalar(rec, "flow/zone_flags", f64::from(estimate.zone_flags));
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A scenario file in a directory of its own, with `flow_table` as its `[flow]` table.
+    fn scenario_with(name: &str, flow_table: &str) -> (Scenario, PathBuf) {
+        let dir = std::env::temp_dir().join(format!("millinav-flow-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let text = format!(
+            "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
+             [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n[flow]\n{flow_table}\n"
+        );
+        let path = dir.join("scenario.toml");
+        (Scenario::parse(&text, &path).unwrap(), dir)
+    }
+
+    #[test]
+    fn check_config_accepts_a_good_table_and_a_good_map() {
+        let (scenario, dir) = scenario_with("good", "map = \"steady.txt\"");
+        FlowMap::zero().save(&dir.join("steady.txt")).unwrap();
+        check_config(&scenario).unwrap();
+        let (scenario, _) = scenario_with("none", "arrow_spacing_mm = 2.0");
+        check_config(&scenario).unwrap();
+    }
+
+    #[test]
+    fn check_config_rejects_a_typo_a_missing_and_a_corrupt_map() {
+        let (scenario, dir) = scenario_with("bad", "mapp = \"steady.txt\"");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[flow]") && error.contains("mapp"),
+            "{error}"
+        );
+
+        let (scenario, _) = scenario_with("bad", "map = \"absent.txt\"");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[flow] map") && error.contains("absent.txt"),
+            "{error}"
+        );
+
+        std::fs::write(dir.join("corrupt.txt"), "this is not a flow map\n1 2 x\n").unwrap();
+        let (scenario, _) = scenario_with("bad", "map = \"corrupt.txt\"");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[flow] map") && error.contains("corrupt.txt"),
+            "{error}"
+        );
+
+        let (scenario, _) = scenario_with("bad", "arrow_spacing_mm = 0.0");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(error.contains("arrow_spacing_mm"), "{error}");
+    }
 
     #[test]
     fn invalid_pose_gets_invalid_estimate() {

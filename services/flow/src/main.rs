@@ -1,16 +1,23 @@
 //! flow process (thin: all logic lives in the library).
 use clap::Parser;
+use millinav_kit::{service_main, ServiceArgs};
+use shm_schemas::ServiceId;
 
-/// Looks up the steady flow map at the robot and publishes a FlowEstimate.
+/// Looks up the steady flow map at the robot and publishes a FlowEstimate. Scenario table:
+/// [flow].
 #[derive(Parser)]
 #[command(name = "millinav-flow", version)]
 struct Args {
-    /// Scenario TOML file (the run, fluid and trajectory, plus a [flow] table).
-    #[arg(long)]
-    scenario: std::path::PathBuf,
+    #[command(flatten)]
+    service: ServiceArgs,
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    millinav_flow::main_with_scenario(&args.scenario)
+    service_main(
+        ServiceId::Flow,
+        &args.service,
+        millinav_flow::prepare,
+        millinav_flow::run,
+    )
 }

@@ -1,11 +1,19 @@
 //! The small kit every millinav process shares: run environment, iceoryx2 node and ports with
-//! one set of QoS settings, heartbeats, the run clock, and the Rerun stream of the run.
+//! one set of QoS settings, heartbeats, the run clock, the Rerun stream of the run, the service
+//! loop and start-up, and configuration errors.
 
 pub mod clock;
+pub mod config;
 pub mod contract;
 pub mod ports;
 pub mod recording;
 pub mod scenario;
+pub mod service_loop;
+pub mod service_main;
+
+pub use config::{ConfigContext, ConfigError, EXIT_CONFIG};
+pub use service_loop::{ServiceLoop, Wake};
+pub use service_main::{service_main, ServiceArgs};
 
 use std::path::PathBuf;
 use std::str::FromStr;

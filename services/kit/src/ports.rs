@@ -13,13 +13,16 @@ use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use shm_schemas::{deadlines, services, FrameHeader, Heartbeat, ServiceId, FRAME_BYTES};
 
+use crate::service_loop::{Attachable, Connects};
 use crate::{iox, KitError};
 use iceoryx2::service::builder::publish_subscribe::{
     PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
 };
 
 /// Samples a slow subscriber may queue before the oldest is overwritten (latest wins).
-const SUBSCRIBER_BUFFER: usize = 4;
+pub const SUBSCRIBER_BUFFER: usize = 4;
+/// Frames are large: a subscriber keeps only the newest two.
+pub const FRAME_SUBSCRIBER_BUFFER: usize = 2;
 const MAX_PUBLISHERS: usize = 16;
 const MAX_SUBSCRIBERS: usize = 12;
 const MAX_NODES: usize = 32;
@@ -119,10 +122,18 @@ impl<T: Debug + ZeroCopySend + Copy + 'static> Outbox<T> {
     }
 }
 
-/// Receives fixed-size messages; its listener can be attached to a WaitSet.
+impl<T: Debug + ZeroCopySend + Copy + 'static> Connects for Outbox<T> {
+    fn update_connections(&self) {
+        Outbox::update_connections(self);
+    }
+}
+
+/// Receives fixed-size messages. It can be attached to a WaitSet (or a `ServiceLoop`)
+/// directly: it wakes the WaitSet when a sample is announced.
+#[derive(Debug)]
 pub struct Inbox<T: Debug + ZeroCopySend + 'static> {
     subscriber: Subscriber<ipc::Service, T, ()>,
-    pub listener: Listener<ipc::Service>,
+    listener: Listener<ipc::Service>,
 }
 
 impl<T: Debug + ZeroCopySend + Copy + 'static> Inbox<T> {
@@ -146,6 +157,12 @@ impl<T: Debug + ZeroCopySend + Copy + 'static> Inbox<T> {
         let _ = self.listener.try_wait(|_| {});
     }
 
+    /// Sleeps until a sample is announced or `timeout` passes, whichever comes first. The
+    /// announcement is consumed; the sample stays queued for `receive_all` / `latest`.
+    pub fn wait(&self, timeout: Duration) {
+        let _ = self.listener.timed_wait(|_| {}, timeout);
+    }
+
     /// Every message queued since the last call, oldest first.
     pub fn receive_all(&self) -> Result<Vec<T>, KitError> {
         self.drain_events();
@@ -159,6 +176,20 @@ impl<T: Debug + ZeroCopySend + Copy + 'static> Inbox<T> {
     /// The newest queued message, dropping older ones.
     pub fn latest(&self) -> Result<Option<T>, KitError> {
         Ok(self.receive_all()?.pop())
+    }
+}
+
+impl<T: Debug + ZeroCopySend + 'static> FileDescriptorBased for Inbox<T> {
+    fn file_descriptor(&self) -> &FileDescriptor {
+        self.listener.file_descriptor()
+    }
+}
+
+impl<T: Debug + ZeroCopySend + 'static> SynchronousMultiplexing for Inbox<T> {}
+
+impl<T: Debug + ZeroCopySend + Copy + 'static> Attachable for Inbox<T> {
+    fn drain_events(&self) {
+        Inbox::drain_events(self);
     }
 }
 
@@ -182,8 +213,7 @@ fn open_frame_service(
         .publish_subscribe::<[u8]>()
         .user_header::<FrameHeader>()
         .history_size(0)
-        // Frames are large: keep only the newest two per subscriber.
-        .subscriber_max_buffer_size(2)
+        .subscriber_max_buffer_size(FRAME_SUBSCRIBER_BUFFER)
         .enable_safe_overflow(true)
         .max_publishers(MAX_PUBLISHERS)
         .max_subscribers(MAX_SUBSCRIBERS)
@@ -261,10 +291,17 @@ impl FrameOutbox {
     }
 }
 
-/// Receives camera frames without copying them.
+impl Connects for FrameOutbox {
+    fn update_connections(&self) {
+        FrameOutbox::update_connections(self);
+    }
+}
+
+/// Receives camera frames without copying them; attachable to a WaitSet like `Inbox`.
+#[derive(Debug)]
 pub struct FrameInbox {
     subscriber: Subscriber<ipc::Service, [u8], FrameHeader>,
-    pub listener: Listener<ipc::Service>,
+    listener: Listener<ipc::Service>,
 }
 
 /// A received frame, borrowed from shared memory until dropped.
@@ -288,12 +325,36 @@ impl FrameInbox {
 
     /// The newest frame, releasing any older queued ones.
     pub fn latest(&self) -> Result<Option<FrameSample>, KitError> {
-        let _ = self.listener.try_wait(|_| {});
+        self.drain_events();
         let mut newest = None;
         while let Some(sample) = self.subscriber.receive().map_err(iox("receive frame"))? {
             newest = Some(sample);
         }
         Ok(newest)
+    }
+
+    /// Consumes pending event notifications (an undrained listener makes a WaitSet spin).
+    pub fn drain_events(&self) {
+        let _ = self.listener.try_wait(|_| {});
+    }
+
+    /// Sleeps until a frame is announced or `timeout` passes, whichever comes first.
+    pub fn wait(&self, timeout: Duration) {
+        let _ = self.listener.timed_wait(|_| {}, timeout);
+    }
+}
+
+impl FileDescriptorBased for FrameInbox {
+    fn file_descriptor(&self) -> &FileDescriptor {
+        self.listener.file_descriptor()
+    }
+}
+
+impl SynchronousMultiplexing for FrameInbox {}
+
+impl Attachable for FrameInbox {
+    fn drain_events(&self) {
+        FrameInbox::drain_events(self);
     }
 }
 
@@ -305,7 +366,7 @@ pub struct HeartbeatSender {
     health: Outbox<Heartbeat>,
     last: Option<Instant>,
     cycles: u64,
-    pub deadline_misses: u64,
+    deadline_misses: u64,
 }
 
 impl HeartbeatSender {
@@ -348,6 +409,16 @@ impl HeartbeatSender {
             deadline_misses: self.deadline_misses,
             wall_time_ns: crate::clock::wall_ns(),
         });
+    }
+
+    /// Counts one missed input deadline; reported with the next heartbeat record.
+    pub fn count_deadline_miss(&mut self) {
+        self.deadline_misses += 1;
+    }
+
+    /// Input deadlines missed since start.
+    pub fn deadline_misses(&self) -> u64 {
+        self.deadline_misses
     }
 
     pub fn update_connections(&self) {

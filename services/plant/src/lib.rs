@@ -9,6 +9,7 @@ pub mod rng_streams;
 pub mod teensy;
 pub mod trueflow;
 
+use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
@@ -19,7 +20,8 @@ use fieldmaps::rig::{FluidParams, RobotParams};
 use millinav_kit::ports::{FrameOutbox, Outbox};
 use millinav_kit::recording;
 use millinav_kit::scenario::{ClockMode, Scenario};
-use millinav_kit::Runtime;
+use millinav_kit::service_loop::keep_alive;
+use millinav_kit::{ConfigContext, ConfigError, Runtime};
 use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
 use shm_schemas::{
@@ -115,20 +117,72 @@ pub fn coil_maps() -> anyhow::Result<std::sync::Arc<fieldmaps::fieldmap::CoilFie
 
 /// Builds the twin's model for a scenario (shared with in-process experiment runs).
 pub fn build_model(scenario: &Scenario, config: &PlantConfig) -> anyhow::Result<PlantModel> {
+    Ok(load_model(scenario, config)?)
+}
+
+/// The model and the files it is made of: the coil field maps and the steady flow map.
+fn load_model(scenario: &Scenario, config: &PlantConfig) -> Result<PlantModel, ConfigError> {
     let fluid = FluidParams {
         viscosity_pa_s: scenario.viscosity_pa_s(),
         density_kg_m3: scenario.fluid.density_kg_m3,
     };
     let flow: FlowMapChoice = scenario.section("flow")?;
+    let coils = coil_maps().config_context("the coil field maps of fieldmaps/coils")?;
+    let steady_flow = flow
+        .load(scenario)
+        .config_context(format!("scenario {}: [flow] map", scenario.path.display()))?;
     Ok(PlantModel::new(
-        coil_maps()?,
+        coils,
         RobotParams::default(),
         &fluid,
         Phantom::default_heart(),
-        flow.load(scenario)?,
+        steady_flow,
         config.physics.clone(),
         scenario.run.seed,
     ))
+}
+
+/// What the `[plant]` table configures, validated, with the model built from the files it
+/// needs (coil field maps, the `[flow]` map).
+pub struct PlantSetup {
+    pub config: PlantConfig,
+    pub model: PlantModel,
+}
+
+/// Parses and validates the `[plant]` table and loads the model's files. Every failure is a
+/// configuration error naming the scenario, the field or the file.
+pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
+    let config: PlantConfig = scenario.section("plant")?;
+    let field = |name: &str| format!("scenario {}: [plant] {name}", scenario.path.display());
+    if !(config.camera_noise_std.is_finite() && config.camera_noise_std >= 0.0) {
+        return Err(ConfigError::new(format!(
+            "{} must be >= 0, got {}",
+            field("camera_noise_std"),
+            config.camera_noise_std
+        )));
+    }
+    let substep_ms = config.physics.substep_ms;
+    if !(substep_ms.is_finite() && substep_ms > 0.0) {
+        return Err(ConfigError::new(format!(
+            "{} must be > 0, got {substep_ms}",
+            field("physics.substep_ms")
+        )));
+    }
+    if let Some(start) = config.initial_position_mm {
+        if start.iter().any(|v| !v.is_finite()) {
+            return Err(ConfigError::new(format!(
+                "{} = {start:?} must hold finite numbers",
+                field("initial_position_mm")
+            )));
+        }
+    }
+    let model = load_model(scenario, &config)?;
+    Ok(PlantSetup { config, model })
+}
+
+/// Validates the `[plant]` table and loads the files the model needs (what `--check` runs).
+pub fn check_config(scenario: &Scenario) -> Result<(), ConfigError> {
+    prepare(scenario).map(drop)
 }
 
 pub fn initial_state(scenario: &Scenario, config: &PlantConfig, model: &PlantModel) -> PlantState {
@@ -207,68 +261,155 @@ fn log_truth(
     }
 }
 
-/// The plant process loop.
-pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
-    let config: PlantConfig = scenario.section("plant")?;
-    let model = build_model(scenario, &config)?;
-    let mut state = initial_state(scenario, &config, &model);
-    let geometry = ImageGeometry::default();
-    let mut render_rng = rng_streams::run_rng(scenario.run.seed, rng_streams::CAMERA_SETUP);
-    let camera = Camera::with_config(
-        &model.phantom,
-        geometry,
-        &mut render_rng,
-        config.camera_noise_std,
-        config.camera.clone(),
-    );
-    // States of the last `latency_frames` + 1 frames: frame k shows the state of frame k − L.
-    let latency = config.camera.latency_frames as usize;
-    let mut history: std::collections::VecDeque<PlantState> =
-        std::collections::VecDeque::with_capacity(latency + 1);
-    let mut contacts = ContactLog::create(&rt.env.run_dir.join(CONTACTS_CSV))?;
-    std::fs::create_dir_all(&rt.env.run_dir)?;
-    let mut teensy = EmulatedTeensy::start(
-        &rt.env
-            .run_dir
-            .join(millinav_teensy_protocol::EMULATED_PORT_LINK),
-        &rt.env.run_dir.join("teensy_events.csv"),
-        deadlines::TEENSY_WATCHDOG,
-        COIL_COUNT,
-    )
-    .context("starting the emulated Teensy")?;
-    // iceoryx2 takes over every catchable signal the first time it checks for termination;
-    // let it do so first, then claim SIGUSR1/SIGUSR2 for link faults.
-    let _ = rt.shutdown_requested();
-    fault_signals::install().context("installing the link-fault signal handlers")?;
-    let frames = FrameOutbox::new(&rt.node)?;
-    let truth_out = Outbox::<PlantTruth>::new(&rt.node, services::PLANT_TRUTH)?;
-    let mut truth_csv = TruthCsv::create(&rt.env.run_dir.join(TRUTH_CSV))?;
-    let _ = rt.rec.log_static(
-        "world/canal",
-        &millinav_kit::rerun::Points2D::new(canal_outline(&camera)).with_radii([0.15]),
-    );
-
-    let frame_period = scenario.frame_period_s();
-    let incarnation = rt.env.incarnation;
-    let mut seq: u64 = 0;
-    let mut misses: u64 = 0;
-    let mut started = false;
-    let mut last_recorded: Option<u64> = None;
-    let mut actual_path = Vec::new();
-    let wall_start = Instant::now();
+/// The plant process: publish frame k and its truth, wait for the command that answers it
+/// (lockstep) or for the next frame time (realtime), step the physics, repeat until the run's
+/// duration or SIGINT / SIGTERM.
+pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: PlantSetup) -> anyhow::Result<()> {
+    let mut twin = Twin::start(rt, scenario, setup)?;
     tracing::info!(
         mode = ?scenario.run.mode,
         duration_s = scenario.run.duration_s,
         "plant running"
     );
-    let publish = |seq: u64,
-                   state: &PlantState,
-                   shown: &PlantState,
-                   misses: u64,
-                   run_time_ns: u64|
-     -> anyhow::Result<()> {
+    loop {
+        if rt.shutdown_requested() {
+            tracing::info!("plant: shutdown requested");
+            break;
+        }
+        let run_time_ns = match scenario.run.mode {
+            ClockMode::Lockstep => millinav_kit::clock::secs_to_ns(twin.state.time_s),
+            ClockMode::Realtime => rt.env.run_clock_ns(),
+        };
+        twin.show_frame(&rt.rec, run_time_ns)?;
+        keep_alive(&mut rt.heartbeat, &[&twin.frames, &twin.truth_out]);
+        if twin.state.time_s >= scenario.run.duration_s {
+            twin.log_completion();
+            break;
+        }
+        twin.inject_requested_faults();
+        // None until the chain answers once: frame 0 is shown again.
+        if let Some(currents) = twin.await_command() {
+            twin.advance(&currents);
+        }
+    }
+    twin.stop()
+}
+
+/// The twin while it runs: the truth, the camera, the outputs and logs, and the emulated
+/// Teensy the coils are driven through.
+struct Twin<'s> {
+    scenario: &'s Scenario,
+    config: PlantConfig,
+    model: PlantModel,
+    state: PlantState,
+    geometry: ImageGeometry,
+    camera: Camera,
+    /// States of the last `latency_frames` + 1 frames: frame k shows the state of frame k − L.
+    history: VecDeque<PlantState>,
+    teensy: EmulatedTeensy,
+    frames: FrameOutbox,
+    truth_out: Outbox<PlantTruth>,
+    truth_csv: TruthCsv,
+    contacts: ContactLog,
+    actual_path: Vec<[f32; 2]>,
+    incarnation: u64,
+    seq: u64,
+    misses: u64,
+    /// The chain has answered a frame once (lockstep).
+    started: bool,
+    last_recorded: Option<u64>,
+    wall_start: Instant,
+}
+
+impl<'s> Twin<'s> {
+    /// Builds the camera, starts the emulated Teensy, opens the outputs and the logs.
+    fn start(rt: &mut Runtime, scenario: &'s Scenario, setup: PlantSetup) -> anyhow::Result<Self> {
+        let PlantSetup { config, model } = setup;
+        let state = initial_state(scenario, &config, &model);
+        let geometry = ImageGeometry::default();
+        let mut render_rng = rng_streams::run_rng(scenario.run.seed, rng_streams::CAMERA_SETUP);
+        let camera = Camera::with_config(
+            &model.phantom,
+            geometry,
+            &mut render_rng,
+            config.camera_noise_std,
+            config.camera.clone(),
+        );
+        let latency = config.camera.latency_frames as usize;
+        let contacts = ContactLog::create(&rt.env.run_dir.join(CONTACTS_CSV))?;
+        std::fs::create_dir_all(&rt.env.run_dir)?;
+        let teensy = EmulatedTeensy::start(
+            &rt.env
+                .run_dir
+                .join(millinav_teensy_protocol::EMULATED_PORT_LINK),
+            &rt.env.run_dir.join("teensy_events.csv"),
+            deadlines::TEENSY_WATCHDOG,
+            COIL_COUNT,
+        )
+        .context("starting the emulated Teensy")?;
+        // iceoryx2 takes over every catchable signal the first time it checks for termination;
+        // let it do so first, then claim SIGUSR1/SIGUSR2 for link faults.
+        let _ = rt.shutdown_requested();
+        fault_signals::install().context("installing the link-fault signal handlers")?;
+        let frames = FrameOutbox::new(&rt.node)?;
+        let truth_out = Outbox::<PlantTruth>::new(&rt.node, services::PLANT_TRUTH)?;
+        let truth_csv = TruthCsv::create(&rt.env.run_dir.join(TRUTH_CSV))?;
+        let _ = rt.rec.log_static(
+            "world/canal",
+            &millinav_kit::rerun::Points2D::new(canal_outline(&camera)).with_radii([0.15]),
+        );
+        Ok(Self {
+            scenario,
+            config,
+            model,
+            state,
+            geometry,
+            camera,
+            history: VecDeque::with_capacity(latency + 1),
+            teensy,
+            frames,
+            truth_out,
+            truth_csv,
+            contacts,
+            actual_path: Vec::new(),
+            incarnation: rt.env.incarnation,
+            seq: 0,
+            misses: 0,
+            started: false,
+            last_recorded: None,
+            wall_start: Instant::now(),
+        })
+    }
+
+    /// Publishes the current frame and its truth. Frame 0 is re-published until the chain
+    /// answers: each frame is recorded once only, so the trace does not depend on how long the
+    /// other processes took to start.
+    fn show_frame(
+        &mut self,
+        rec: &millinav_kit::rerun::RecordingStream,
+        run_time_ns: u64,
+    ) -> anyhow::Result<()> {
+        let fresh_frame = self.last_recorded != Some(self.seq);
+        if fresh_frame {
+            self.history.push_back(self.state.clone());
+            while self.history.len() > self.config.camera.latency_frames as usize + 1 {
+                self.history.pop_front();
+            }
+        }
+        self.publish(run_time_ns)?;
+        if fresh_frame {
+            self.record_frame(rec)?;
+        }
+        Ok(())
+    }
+
+    /// Sends the camera frame (showing the state `latency_frames` ago) and the current truth.
+    fn publish(&self, run_time_ns: u64) -> anyhow::Result<()> {
+        let (seq, state) = (self.seq, &self.state);
+        let shown = self.history.front().unwrap_or(state);
+        let geometry = &self.geometry;
         let header = FrameHeader {
-            stamp: FrameStamp::new(seq, incarnation, run_time_ns),
+            stamp: FrameStamp::new(seq, self.incarnation, run_time_ns),
             width: geometry.width_px,
             height: geometry.height_px,
             stride: geometry.width_px * FRAME_CHANNELS,
@@ -276,116 +417,117 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
             ..Default::default()
         }
         .with_mapping(geometry.pixel_mapping());
-        let mut rng = rng_streams::frame_noise_rng(scenario.run.seed, seq);
+        let mut rng = rng_streams::frame_noise_rng(self.scenario.run.seed, seq);
         let capsule = CapsulePose {
             position_m: shown.position_m,
             heading_rad: shown.heading_rad,
-            length_m: model.robot.length_m,
-            diameter_m: model.robot.diameter_m,
+            length_m: self.model.robot.length_m,
+            diameter_m: self.model.robot.diameter_m,
         };
-        frames.send(header, camera.frame_background(seq), |rgb| {
-            camera.finish_frame(rgb, &capsule, seq, state.time_s, &mut rng, None)
-        })?;
-        truth_out.send(truth_of(state, seq, misses))?;
+        let camera = &self.camera;
+        self.frames
+            .send(header, camera.frame_background(seq), |rgb| {
+                camera.finish_frame(rgb, &capsule, seq, state.time_s, &mut rng, None)
+            })?;
+        self.truth_out.send(truth_of(state, seq, self.misses))?;
         Ok(())
-    };
+    }
 
-    loop {
-        if rt.shutdown_requested() {
-            tracing::info!("plant: shutdown requested");
-            break;
+    /// Appends the frame to the truth and contact logs and the recording.
+    fn record_frame(&mut self, rec: &millinav_kit::rerun::RecordingStream) -> anyhow::Result<()> {
+        let (seq, state) = (self.seq, &self.state);
+        self.last_recorded = Some(seq);
+        self.truth_csv.append(&truth_of(state, seq, self.misses))?;
+        self.contacts.record(seq, state)?;
+        recording::set_time(rec, millinav_kit::clock::secs_to_ns(state.time_s), seq);
+        if seq.is_multiple_of(self.config.log_every_frames.max(1)) {
+            log_truth(rec, state, &mut self.actual_path);
         }
-        let run_time_ns = match scenario.run.mode {
-            ClockMode::Lockstep => millinav_kit::clock::secs_to_ns(state.time_s),
-            ClockMode::Realtime => rt.env.run_clock_ns(),
-        };
-        // Frame 0 is re-published until the chain answers: record each frame once only, so
-        // the trace does not depend on how long the other processes took to start.
-        let fresh_frame = last_recorded != Some(seq);
-        if fresh_frame {
-            history.push_back(state.clone());
-            while history.len() > latency + 1 {
-                history.pop_front();
-            }
-        }
-        let shown = history.front().unwrap_or(&state);
-        publish(seq, &state, shown, misses, run_time_ns)?;
-        if fresh_frame {
-            last_recorded = Some(seq);
-            truth_csv.append(&truth_of(&state, seq, misses))?;
-            contacts.record(seq, &state)?;
-            recording::set_time(&rt.rec, millinav_kit::clock::secs_to_ns(state.time_s), seq);
-            if seq.is_multiple_of(config.log_every_frames.max(1)) {
-                log_truth(&rt.rec, &state, &mut actual_path);
-            }
-        }
-        rt.heartbeat.beat();
-        frames.update_connections();
-        truth_out.update_connections();
-        rt.heartbeat.update_connections();
+        Ok(())
+    }
 
-        if state.time_s >= scenario.run.duration_s {
-            tracing::info!(
-                frames = seq,
-                misses,
-                contact_events = state.contact_events,
-                contact_time_s = state.contact_time_s,
-                wall_s = wall_start.elapsed().as_secs_f64(),
-                "run complete"
-            );
-            break;
-        }
+    fn log_completion(&self) {
+        tracing::info!(
+            frames = self.seq,
+            misses = self.misses,
+            contact_events = self.state.contact_events,
+            contact_time_s = self.state.contact_time_s,
+            wall_s = self.wall_start.elapsed().as_secs_f64(),
+            "run complete"
+        );
+    }
+
+    /// Applies the link fault a signal asked for, if any.
+    fn inject_requested_faults(&self) {
+        let faults = &self.config.link_faults;
         match fault_signals::take() {
-            Some(fault_signals::Requested::Unplug) => teensy.inject(LinkFault::Unplug(
-                Duration::from_millis(config.link_faults.unplug_ms),
-            )),
-            Some(fault_signals::Requested::Hang) => teensy.inject(LinkFault::Hang(
-                Duration::from_millis(config.link_faults.hang_ms),
-            )),
+            Some(fault_signals::Requested::Unplug) => self
+                .teensy
+                .inject(LinkFault::Unplug(Duration::from_millis(faults.unplug_ms))),
+            Some(fault_signals::Requested::Hang) => self
+                .teensy
+                .inject(LinkFault::Hang(Duration::from_millis(faults.hang_ms))),
             None => {}
         }
-        let commanded: [f64; COIL_COUNT] = match scenario.run.mode {
+    }
+
+    /// The coil currents to step with. Lockstep: the command answering this frame, or what the
+    /// board drives when it missed its deadline; `None` until the chain has answered once (the
+    /// run starts when every process is up, not when the plant happens to be). Realtime: what
+    /// the board drives at the next frame time.
+    fn await_command(&mut self) -> Option<[f64; COIL_COUNT]> {
+        match self.scenario.run.mode {
             ClockMode::Lockstep => {
-                let (outputs, in_time) = teensy.wait_for_frame(seq, deadlines::LOCKSTEP_COMMAND);
-                if !started {
-                    // Until the chain answers once, keep re-publishing frame 0: the run starts
-                    // when every process is up, not when the plant happens to be.
+                let (outputs, in_time) = self
+                    .teensy
+                    .wait_for_frame(self.seq, deadlines::LOCKSTEP_COMMAND);
+                if !self.started {
                     if !in_time {
-                        continue;
+                        return None;
                     }
-                    started = true;
+                    self.started = true;
                     tracing::info!(
-                        after_s = wall_start.elapsed().as_secs_f64(),
+                        after_s = self.wall_start.elapsed().as_secs_f64(),
                         "closed loop established"
                     );
                 } else if !in_time {
-                    misses += 1;
-                    tracing::debug!(seq, "lockstep: command missed its deadline");
+                    self.misses += 1;
+                    tracing::debug!(seq = self.seq, "lockstep: command missed its deadline");
                 }
-                if in_time {
+                Some(if in_time {
                     // The command that answered this frame, even if a safe-zero keep-alive
                     // raced in after it: the step must not depend on wall-clock timing.
                     twin_currents(outputs.last_command_currents())
                 } else {
                     twin_currents(outputs.currents())
-                }
+                })
             }
             ClockMode::Realtime => {
-                let next = wall_start + Duration::from_secs_f64((seq + 1) as f64 * frame_period);
+                let frame_period = self.scenario.frame_period_s();
+                let next =
+                    self.wall_start + Duration::from_secs_f64((self.seq + 1) as f64 * frame_period);
                 if let Some(wait) = next.checked_duration_since(Instant::now()) {
                     std::thread::sleep(wait);
                 }
-                twin_currents(teensy.outputs().currents())
+                Some(twin_currents(self.teensy.outputs().currents()))
             }
-        };
-        model.step(&mut state, &commanded, frame_period);
-        seq += 1;
+        }
     }
-    teensy.stop();
-    truth_csv.flush()?;
-    contacts.flush()?;
-    let _ = rt.rec.flush_blocking();
-    Ok(())
+
+    /// Steps the physics one frame period with `currents` commanded.
+    fn advance(&mut self, currents: &[f64; COIL_COUNT]) {
+        self.model
+            .step(&mut self.state, currents, self.scenario.frame_period_s());
+        self.seq += 1;
+    }
+
+    /// Stops the emulated Teensy and flushes the logs.
+    fn stop(mut self) -> anyhow::Result<()> {
+        self.teensy.stop();
+        self.truth_csv.flush()?;
+        self.contacts.flush()?;
+        Ok(())
+    }
 }
 
 /// File name of the ground-truth trace in a run directory.
@@ -520,9 +662,65 @@ fn canal_outline(camera: &Camera) -> Vec<[f32; 2]> {
     points
 }
 
-pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()> {
-    let mut rt = Runtime::start(shm_schemas::ServiceId::Plant)?;
-    let scenario = Scenario::load(scenario_path)
-        .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
-    run(&mut rt, &scenario)
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A scenario file in a directory of its own with the given `[plant]` and `[flow]` tables.
+    fn scenario_with(
+        name: &str,
+        plant_table: &str,
+        flow_table: &str,
+    ) -> (Scenario, std::path::PathBuf) {
+        let dir =
+            std::env::temp_dir().join(format!("millinav-plant-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let text = format!(
+            "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
+             [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n\
+             [plant]\n{plant_table}\n[flow]\n{flow_table}\n"
+        );
+        let path = dir.join("scenario.toml");
+        (Scenario::parse(&text, &path).unwrap(), dir)
+    }
+
+    #[test]
+    fn check_config_accepts_a_good_table_and_map() {
+        let (scenario, dir) = scenario_with("good", "camera_noise_std = 2.0", "map = \"m.txt\"");
+        FlowMap::zero().save(&dir.join("m.txt")).unwrap();
+        check_config(&scenario).unwrap();
+    }
+
+    #[test]
+    fn check_config_rejects_typos_and_missing_or_corrupt_maps() {
+        let (scenario, dir) = scenario_with("typo", "camera_noise = 2.0", "");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[plant]") && error.contains("camera_noise"),
+            "{error}"
+        );
+
+        let (scenario, _) = scenario_with("nested", "[plant.physics]\nsubstep = 1.0", "");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(error.contains("substep"), "{error}");
+
+        let (scenario, _) = scenario_with("missing", "", "map = \"absent.txt\"");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[flow] map") && error.contains("absent.txt"),
+            "{error}"
+        );
+
+        std::fs::write(dir.join("corrupt.txt"), "garbage\n").unwrap();
+        let (scenario, _) = scenario_with("corrupt", "", "map = \"corrupt.txt\"");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[flow] map") && error.contains("corrupt.txt"),
+            "{error}"
+        );
+
+        let (scenario, _) = scenario_with("substep", "[plant.physics]\nsubstep_ms = 0.0", "");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(error.contains("[plant] physics.substep_ms"), "{error}");
+    }
 }

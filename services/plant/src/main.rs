@@ -1,7 +1,10 @@
 //! plant process (thin: all logic lives in the library).
 use clap::Parser;
+use millinav_kit::{service_main, ServiceArgs};
+use shm_schemas::ServiceId;
 
-/// The digital twin of the rig: physics, camera frames, PlantTruth and an emulated Teensy on a pty.
+/// The digital twin of the rig: physics, camera frames, PlantTruth and an emulated Teensy on a
+/// pty. Scenario tables: [plant], and the map of [flow].
 #[derive(Parser)]
 #[command(
     name = "millinav-plant",
@@ -12,12 +15,16 @@ use clap::Parser;
                   SIGINT/SIGTERM stop the run."
 )]
 struct Args {
-    /// Scenario TOML file (the run, fluid and trajectory, plus a [plant] table).
-    #[arg(long)]
-    scenario: std::path::PathBuf,
+    #[command(flatten)]
+    service: ServiceArgs,
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    millinav_plant::main_with_scenario(&args.scenario)
+    service_main(
+        ServiceId::Plant,
+        &args.service,
+        millinav_plant::prepare,
+        millinav_plant::run,
+    )
 }

@@ -7,16 +7,11 @@ pub mod eval;
 pub mod ort_version;
 pub mod unet;
 
-use std::time::Duration;
-
-use anyhow::Context;
-use millinav_kit::iceoryx2::prelude::*;
-use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
 use millinav_kit::ports::{FrameInbox, Outbox};
 use millinav_kit::recording;
 use millinav_kit::rerun;
 use millinav_kit::scenario::Scenario;
-use millinav_kit::Runtime;
+use millinav_kit::{ConfigContext, ConfigError, Runtime, ServiceLoop};
 use serde::{Deserialize, Serialize};
 use shm_schemas::{deadlines, services, Flag, FrameHeader, PixelFormat, Pose, PoseSource};
 
@@ -285,125 +280,210 @@ fn log_frame(
     }
 }
 
-/// The vision process loop.
-pub fn run(rt: &mut Runtime, scenario: &Scenario) -> anyhow::Result<()> {
+/// What the `[vision]` table configures, validated and loaded: the config and the pipeline
+/// with its model.
+pub struct VisionSetup {
+    pub config: VisionConfig,
+    pub pipeline: Pipeline,
+}
+
+/// Parses and validates the `[vision]` table and loads the model and ONNX Runtime it names.
+/// Every failure is a configuration error naming the scenario, the field and the file.
+pub fn prepare(scenario: &Scenario) -> Result<VisionSetup, ConfigError> {
     let config: VisionConfig = scenario.section("vision")?;
+    let field = |name: &str| format!("scenario {}: [vision] {name}", scenario.path.display());
+    if !(config.roi_mm.is_finite() && config.roi_mm > 0.0) {
+        return Err(ConfigError::new(format!(
+            "{} must be > 0, got {}",
+            field("roi_mm"),
+            config.roi_mm
+        )));
+    }
+    if config.localizer == LocalizerKind::Unet {
+        let model = resolve_model(&config, scenario);
+        if !model.is_file() {
+            return Err(ConfigError::new(format!(
+                "{} = {}: {} is not a file",
+                field("model"),
+                config.model.display(),
+                model.display()
+            )));
+        }
+    }
+    let pipeline = Pipeline::new(&config, scenario).config_context(field("localizer"))?;
+    Ok(VisionSetup { config, pipeline })
+}
+
+/// Validates the `[vision]` table and loads its model (what `--check` runs).
+pub fn check_config(scenario: &Scenario) -> Result<(), ConfigError> {
+    prepare(scenario).map(drop)
+}
+
+/// A warning is logged for the first frame without a pose, then for every this many.
+const WARN_EVERY_LOST_FRAMES: u64 = 100;
+
+/// The vision process: the newest frame gets a pose (valid or not), older ones are skipped.
+pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: VisionSetup) -> anyhow::Result<()> {
+    let VisionSetup {
+        config,
+        mut pipeline,
+    } = setup;
     let frames = FrameInbox::new(&rt.node)?;
     let poses = Outbox::<Pose>::new(&rt.node, services::POSE)?;
-    let mut pipeline = Pipeline::new(&config, scenario)?;
     tracing::info!(localizer = ?config.localizer, "vision ready");
     let mut lost_frames: u64 = 0;
 
-    let waitset = WaitSetBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(millinav_kit::iox("waitset"))?;
-    let frame_guard = waitset
-        .attach_deadline(&frames.listener, deadlines::FRAME)
-        .map_err(millinav_kit::iox("attach frame deadline"))?;
-    let _tick = waitset
-        .attach_interval(deadlines::HEARTBEAT_PERIOD)
-        .map_err(millinav_kit::iox("attach tick"))?;
-
-    loop {
-        let mut missed = false;
-        let result = waitset
-            .wait_and_process_once_with_timeout(
-                |id| {
-                    if id.has_missed_deadline(&frame_guard) {
-                        missed = true;
-                    }
-                    CallbackProgression::Continue
-                },
-                Duration::from_millis(100),
-            )
-            .map_err(millinav_kit::iox("waitset"))?;
-        if matches!(
-            result,
-            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
-        ) {
-            break;
-        }
-        if missed {
-            rt.heartbeat.deadline_misses += 1;
-        }
-        rt.heartbeat.beat();
-        poses.update_connections();
-        rt.heartbeat.update_connections();
+    let mut service_loop = ServiceLoop::new();
+    service_loop.input_with_deadline(&frames, deadlines::FRAME);
+    service_loop.output(&poses);
+    service_loop.run(&mut rt.heartbeat, |_| {
         let Some(sample) = frames.latest()? else {
             tracing::debug!("woke without a frame");
-            continue;
+            return Ok(());
         };
         tracing::debug!(seq = sample.user_header().stamp.seq, "frame");
         let header = *sample.user_header();
-        let rgb = sample.payload();
-        let pose = match header.validate(rgb.len()) {
-            Ok(PixelFormat::Rgb8) => {
-                let (w, h) = (header.width as i32, header.height as i32);
-                if header.stride != header.width * 3 {
-                    tracing::warn!(
-                        "padded frames are not supported; frame {} dropped",
-                        header.stamp.seq
-                    );
-                    invalid_pose(&header)
-                } else {
-                    let result = pipeline.process(rgb, w as usize, h as usize, header.mm_per_px);
-                    let log_image = config.image_log_every > 0
-                        && header.stamp.seq % config.image_log_every == 0;
-                    recording::set_time(&rt.rec, header.stamp.capture_time_ns, header.stamp.seq);
-                    let mask = result.classical_mask.as_ref().map(|(m, r)| (m, *r));
-                    match &result.detection {
-                        Ok(detection) => {
-                            lost_frames = 0;
-                            log_frame(&rt.rec, &header, rgb, Some(detection), mask, log_image);
-                            pose_from_detection(&header, detection, result.source)
-                        }
-                        Err(why) => {
-                            lost_frames += 1;
-                            if lost_frames == 1 || lost_frames.is_multiple_of(100) {
-                                tracing::warn!(seq = header.stamp.seq, "no pose: {why}");
-                            }
-                            log_frame(&rt.rec, &header, rgb, None, None, log_image);
-                            invalid_pose(&header)
-                        }
-                    }
-                }
-            }
-            Ok(other) => {
-                tracing::warn!(
-                    "unsupported pixel format {other:?}; frame {} dropped",
-                    header.stamp.seq
-                );
-                invalid_pose(&header)
-            }
-            Err(why) => {
-                tracing::warn!("malformed frame {}: {why}", header.stamp.seq);
-                invalid_pose(&header)
-            }
-        };
+        let pose = pose_for_frame(
+            &mut pipeline,
+            &config,
+            &rt.rec,
+            &header,
+            sample.payload(),
+            &mut lost_frames,
+        );
         drop(sample);
-        if pose.valid == Flag::TRUE {
-            let _ = rt.rec.log(
-                "world/robot/estimated",
-                &rerun::Points2D::new([[
-                    (pose.position_m[0] * 1e3) as f32,
-                    (pose.position_m[1] * 1e3) as f32,
-                ]])
-                .with_radii([1.0]),
-            );
-            recording::scalar(&rt.rec, "vision/x_mm", pose.position_m[0] * 1e3);
-            recording::scalar(&rt.rec, "vision/y_mm", pose.position_m[1] * 1e3);
-            recording::scalar(&rt.rec, "vision/heading_deg", pose.heading_rad.to_degrees());
-        }
-        recording::scalar(&rt.rec, "vision/valid", f64::from(pose.valid.raw()));
+        log_pose(&rt.rec, &pose);
         poses.send(pose)?;
-    }
-    let _ = rt.rec.flush_blocking();
+        anyhow::Ok(())
+    })?;
     Ok(())
 }
 
-pub fn main_with_scenario(scenario_path: &std::path::Path) -> anyhow::Result<()> {
-    let mut rt = Runtime::start(shm_schemas::ServiceId::Vision)?;
-    let scenario = Scenario::load(scenario_path)
-        .with_context(|| format!("loading scenario {}", scenario_path.display()))?;
-    run(&mut rt, &scenario)
+/// Localizes the capsule in one received frame; a frame that cannot be read gives an invalid
+/// pose. Counts consecutive frames without a pose in `lost_frames`.
+fn pose_for_frame(
+    pipeline: &mut Pipeline,
+    config: &VisionConfig,
+    rec: &rerun::RecordingStream,
+    header: &FrameHeader,
+    rgb: &[u8],
+    lost_frames: &mut u64,
+) -> Pose {
+    match header.validate(rgb.len()) {
+        Ok(PixelFormat::Rgb8) => {
+            let (w, h) = (header.width as i32, header.height as i32);
+            if header.stride != header.width * 3 {
+                tracing::warn!(
+                    "padded frames are not supported; frame {} dropped",
+                    header.stamp.seq
+                );
+                invalid_pose(header)
+            } else {
+                let result = pipeline.process(rgb, w as usize, h as usize, header.mm_per_px);
+                let log_image = config.image_log_every > 0
+                    && header.stamp.seq.is_multiple_of(config.image_log_every);
+                recording::set_time(rec, header.stamp.capture_time_ns, header.stamp.seq);
+                let mask = result.classical_mask.as_ref().map(|(m, r)| (m, *r));
+                match &result.detection {
+                    Ok(detection) => {
+                        *lost_frames = 0;
+                        log_frame(rec, header, rgb, Some(detection), mask, log_image);
+                        pose_from_detection(header, detection, result.source)
+                    }
+                    Err(why) => {
+                        *lost_frames += 1;
+                        if *lost_frames == 1 || lost_frames.is_multiple_of(WARN_EVERY_LOST_FRAMES) {
+                            tracing::warn!(seq = header.stamp.seq, "no pose: {why}");
+                        }
+                        log_frame(rec, header, rgb, None, None, log_image);
+                        invalid_pose(header)
+                    }
+                }
+            }
+        }
+        Ok(other) => {
+            tracing::warn!(
+                "unsupported pixel format {other:?}; frame {} dropped",
+                header.stamp.seq
+            );
+            invalid_pose(header)
+        }
+        Err(why) => {
+            tracing::warn!("malformed frame {}: {why}", header.stamp.seq);
+            invalid_pose(header)
+        }
+    }
+}
+
+fn log_pose(rec: &rerun::RecordingStream, pose: &Pose) {
+    if pose.valid == Flag::TRUE {
+        let _ = rec.log(
+            "world/robot/estimated",
+            &rerun::Points2D::new([[
+                (pose.position_m[0] * 1e3) as f32,
+                (pose.position_m[1] * 1e3) as f32,
+            ]])
+            .with_radii([1.0]),
+        );
+        recording::scalar(rec, "vision/x_mm", pose.position_m[0] * 1e3);
+        recording::scalar(rec, "vision/y_mm", pose.position_m[1] * 1e3);
+        recording::scalar(rec, "vision/heading_deg", pose.heading_rad.to_degrees());
+    }
+    recording::scalar(rec, "vision/valid", f64::from(pose.valid.raw()));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A scenario file in a directory of its own, with `vision_table` as its `[vision]`.
+    fn scenario_with(name: &str, vision_table: &str) -> (Scenario, PathBuf) {
+        let dir =
+            std::env::temp_dir().join(format!("millinav-vision-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let text = format!(
+            "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
+             [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n[vision]\n{vision_table}\n"
+        );
+        let path = dir.join("scenario.toml");
+        (Scenario::parse(&text, &path).unwrap(), dir)
+    }
+
+    #[test]
+    fn check_config_accepts_the_classical_localizer() {
+        let (scenario, _) = scenario_with("classical", "localizer = \"classical\"");
+        check_config(&scenario).unwrap();
+    }
+
+    #[test]
+    fn check_config_rejects_typos_and_missing_or_corrupt_models() {
+        let (scenario, dir) = scenario_with("typo", "localiser = \"classical\"");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[vision]") && error.contains("localiser"),
+            "{error}"
+        );
+
+        let absent = dir.join("absent.onnx");
+        let (scenario, _) = scenario_with("absent", &format!("model = {:?}", absent));
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[vision] model") && error.contains("absent.onnx"),
+            "{error}"
+        );
+
+        // Loading a corrupt model needs ONNX Runtime, which the project's setup installs.
+        let corrupt = dir.join("corrupt.onnx");
+        std::fs::write(&corrupt, b"not an ONNX model").unwrap();
+        let (scenario, _) = scenario_with("corrupt", &format!("model = {:?}", corrupt));
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[vision]") && error.contains("corrupt.onnx"),
+            "{error}"
+        );
+
+        let (scenario, _) = scenario_with("roi", "localizer = \"classical\"\nroi_mm = -1.0");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(error.contains("[vision] roi_mm"), "{error}");
+    }
 }

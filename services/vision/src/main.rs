@@ -1,16 +1,22 @@
 //! vision process (thin: all logic lives in the library).
 use clap::Parser;
+use millinav_kit::{service_main, ServiceArgs};
+use shm_schemas::ServiceId;
 
-/// Localizes the capsule in camera frames and publishes its Pose.
+/// Localizes the capsule in camera frames and publishes its Pose. Scenario table: [vision].
 #[derive(Parser)]
 #[command(name = "millinav-vision", version)]
 struct Args {
-    /// Scenario TOML file (the run, fluid and trajectory, plus a [vision] table).
-    #[arg(long)]
-    scenario: std::path::PathBuf,
+    #[command(flatten)]
+    service: ServiceArgs,
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    millinav_vision::main_with_scenario(&args.scenario)
+    service_main(
+        ServiceId::Vision,
+        &args.service,
+        millinav_vision::prepare,
+        millinav_vision::run,
+    )
 }

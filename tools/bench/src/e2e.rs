@@ -130,7 +130,7 @@ where
         let inbox = Inbox::<T>::new(&node, topic)?;
         let mut out = Vec::new();
         while !stop.load(Ordering::Relaxed) {
-            let _ = inbox.listener.timed_wait(|_| {}, Duration::from_millis(50));
+            inbox.wait(Duration::from_millis(50));
             let msgs = inbox.receive_all()?;
             let now = monotonic_ns();
             for m in msgs {

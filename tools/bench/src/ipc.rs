@@ -334,7 +334,7 @@ fn send_iceoryx2(
             if left.is_zero() {
                 return Ok(false);
             }
-            let _ = acks.listener.timed_wait(|_| {}, left);
+            acks.wait(left);
         }
     };
     // Connection: resend message 0 until the receiver answers.
@@ -436,7 +436,7 @@ pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<
                 let mut got: Option<(u64, u64, u64)> = None;
                 let mut woke = 0;
                 if let Some(f) = &frames {
-                    let _ = f.listener.timed_wait(|_| {}, Duration::from_millis(100));
+                    f.wait(Duration::from_millis(100));
                     woke = monotonic_ns();
                     if let Some(sample) = f.latest()? {
                         let now = monotonic_ns();
@@ -445,7 +445,7 @@ pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<
                     }
                 }
                 if let Some(p) = &poses {
-                    let _ = p.listener.timed_wait(|_| {}, Duration::from_millis(100));
+                    p.wait(Duration::from_millis(100));
                     woke = monotonic_ns();
                     if let Some(m) = p.latest()? {
                         got = Some((m.stamp.seq, m.stamp.capture_time_ns, monotonic_ns()));
