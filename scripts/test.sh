@@ -1,8 +1,20 @@
 #!/usr/bin/env bash
-# The test command: installs prerequisites (idempotent), builds, and runs every test.
+# The test command: installs prerequisites (idempotent), builds, checks the gates, and runs every
+# test. Any failing gate fails the command.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
+# Gates: formatting, one feature set for the run and test builds, no unused dependencies, and
+# clippy with warnings as errors on every target (a check build: it type-checks the dependencies
+# once more, without code generation).
+cargo fmt --all -- --check
+./scripts/check_features.sh
+CARGO_MACHETE_VERSION="0.9.2"
+if [ "$(cargo machete --version 2>/dev/null)" != "$CARGO_MACHETE_VERSION" ]; then
+  cargo install cargo-machete --version "$CARGO_MACHETE_VERSION" --locked
+fi
+cargo machete
+cargo clippy --release --workspace --all-targets --locked -- -D warnings
 cargo test --release --workspace --locked
 # The serial decoder under libFuzzer for a bounded time (nightly + cargo-fuzz, installed on demand).
 ./scripts/fuzz.sh "${MILLINAV_FUZZ_SECONDS:-60}"

@@ -4,7 +4,7 @@
 Follows the paper's recipe (RIG.md, Vision): loss = cross-entropy (mask) + 0.5 * L1 (keypoints),
 Adam lr 1e-3, ReduceLROnPlateau, early stopping, flips and 90-degree rotations. Differences,
 chosen for a 2-core CPU at inference: input is a 96x96 ROI (192 px crop downsampled 2x, see
-tools/unet/src/roi.rs) instead of 572x572, a 3-level UNet with 16/32/64 channels, and batch 32.
+services/roi/src/roi.rs) instead of 572x572, a 3-level UNet with 16/32/64 channels, and batch 32.
 
 Keypoints come from 3 heatmaps through a spatial soft-argmax, so the exported graph outputs
 coordinates directly:

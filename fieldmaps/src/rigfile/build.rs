@@ -79,7 +79,7 @@ fn fmt_vec(v: &[f64]) -> String {
 }
 
 fn check_name(
-    ctx: &Ctx,
+    ctx: &Ctx<'_>,
     field: &str,
     name: &str,
     seen: &mut HashSet<String>,
@@ -100,7 +100,7 @@ fn check_name(
     Ok(())
 }
 
-fn require_positive(ctx: &Ctx, field: &str, v: f64) -> Result<(), RigFileError> {
+fn require_positive(ctx: &Ctx<'_>, field: &str, v: f64) -> Result<(), RigFileError> {
     if positive(v) {
         Ok(())
     } else {
@@ -116,7 +116,7 @@ fn mm2(v: [f64; 2]) -> Vector2<f64> {
     Vector2::new(v[0], v[1]) / 1e3
 }
 
-pub(super) fn build(ctx: &Ctx, file: schema::RigFile) -> Result<Rig, RigFileError> {
+pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFileError> {
     if file.format != RIG_FORMAT {
         return Err(ctx.err(
             "format",
@@ -159,7 +159,10 @@ pub(super) fn build(ctx: &Ctx, file: schema::RigFile) -> Result<Rig, RigFileErro
     })
 }
 
-fn build_coils(ctx: &Ctx, sections: &[schema::CoilSection]) -> Result<Vec<RigCoil>, RigFileError> {
+fn build_coils(
+    ctx: &Ctx<'_>,
+    sections: &[schema::CoilSection],
+) -> Result<Vec<RigCoil>, RigFileError> {
     if sections.is_empty() {
         return Err(ctx.err("coils", "a rig needs at least one coil"));
     }
@@ -248,7 +251,7 @@ fn build_coils(ctx: &Ctx, sections: &[schema::CoilSection]) -> Result<Vec<RigCoi
     Ok(coils)
 }
 
-fn parse_field_model(ctx: &Ctx, text: &str) -> Result<FieldModel, RigFileError> {
+fn parse_field_model(ctx: &Ctx<'_>, text: &str) -> Result<FieldModel, RigFileError> {
     let field = "electromagnet.field_model";
     match text.trim() {
         "analytic" => Ok(FieldModel::Analytic),
@@ -265,7 +268,7 @@ fn parse_field_model(ctx: &Ctx, text: &str) -> Result<FieldModel, RigFileError> 
 }
 
 fn build_field(
-    ctx: &Ctx,
+    ctx: &Ctx<'_>,
     model: &FieldModel,
     coils: &[RigCoil],
 ) -> Result<RigCoilField, RigFileError> {
@@ -329,7 +332,7 @@ fn build_field(
 }
 
 fn build_allocation(
-    ctx: &Ctx,
+    ctx: &Ctx<'_>,
     names: &[String],
     coils: &[RigCoil],
 ) -> Result<Vec<usize>, RigFileError> {
@@ -353,7 +356,7 @@ fn build_allocation(
     Ok(ids)
 }
 
-fn build_camera(ctx: &Ctx, c: &schema::CameraSection) -> Result<RigCamera, RigFileError> {
+fn build_camera(ctx: &Ctx<'_>, c: &schema::CameraSection) -> Result<RigCamera, RigFileError> {
     if c.width_px == 0 || c.height_px == 0 {
         let key = if c.width_px == 0 {
             "width_px"
@@ -399,7 +402,7 @@ fn build_camera(ctx: &Ctx, c: &schema::CameraSection) -> Result<RigCamera, RigFi
 /// field of view divided by `mask_mm_per_px` (a whole number within 1e-6 px), and its origin is
 /// the camera's within half a camera pixel.
 fn mask_geometry(
-    ctx: &Ctx,
+    ctx: &Ctx<'_>,
     p: &schema::PhantomSection,
     camera: &ImageGeometry,
 ) -> Result<ImageGeometry, RigFileError> {
@@ -461,7 +464,7 @@ fn mask_geometry(
 }
 
 fn build_phantom(
-    ctx: &Ctx,
+    ctx: &Ctx<'_>,
     p: &schema::PhantomSection,
     camera: &RigCamera,
 ) -> Result<RigPhantom, RigFileError> {
@@ -576,7 +579,7 @@ fn build_phantom(
 /// pixel of slack, so a band may run to the image edge) and at least one canal pixel centre
 /// inside the polygon.
 fn build_zones(
-    ctx: &Ctx,
+    ctx: &Ctx<'_>,
     sections: &[schema::ZoneSection],
     mask: &CanalMask,
 ) -> Result<Vec<Zone>, RigFileError> {
@@ -677,7 +680,7 @@ fn flow_header_value(text: &str, key: &str) -> Option<f64> {
 }
 
 fn build_flow(
-    ctx: &Ctx,
+    ctx: &Ctx<'_>,
     sections: &[schema::FlowSection],
 ) -> Result<Vec<FlowCondition>, RigFileError> {
     let mut names = HashSet::new();
@@ -727,7 +730,7 @@ fn build_flow(
     Ok(out)
 }
 
-fn build_robot(ctx: &Ctx, r: &schema::RobotSection) -> Result<RobotParams, RigFileError> {
+fn build_robot(ctx: &Ctx<'_>, r: &schema::RobotSection) -> Result<RobotParams, RigFileError> {
     let robot = RobotParams {
         magnet_moment_am2: r.magnet_moment_am2,
         mass_kg: r.mass_kg,

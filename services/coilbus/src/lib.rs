@@ -32,8 +32,7 @@ use crate::safety::{clamp_currents, CurrentLimits, StaleFilter};
 /// Serial-link changes (`open`, `lost`) in a run directory: monotonic_ns,event,detail.
 pub const LINK_EVENTS_CSV: &str = <LinkEventRow as RunLogRow>::FILE_NAME;
 
-/// Name of the emulated Teensy's pty link inside a run directory.
-pub const EMULATED_PORT_LINK: &str = "teensy.pty";
+pub use millinav_teensy_protocol::EMULATED_PORT_LINK;
 
 /// `[coilbus]` section of a scenario.
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -4,7 +4,6 @@
 //! coils; the loop holds the orientation field briefly, then goes safe (zero currents).
 
 pub mod controllers;
-pub mod mpc;
 pub mod reference;
 
 use std::time::{Duration, Instant};
@@ -30,9 +29,14 @@ use shm_schemas::{
 };
 
 use crate::controllers::{
-    ControlInput, ControlTerms, Controller, ControllerKind, NominalModel, PidGains, SmcGains,
+    ControlInput, ControlTerms, Controller, ControllerKind, MpcGains, NominalModel, PidGains,
+    SmcGains,
 };
 use crate::reference::Reference;
+
+/// Allowance on top of `max_speed_mps · Δt` before a pose counts as a jump, so that
+/// localization noise on the two poses cannot reject a real move when Δt is short.
+const POSE_JUMP_SLACK_M: f64 = 3e-3;
 
 /// `[control]` section of a scenario.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -42,7 +46,7 @@ pub struct ControlConfig {
     pub pid: PidGains,
     pub smc: SmcGains,
     /// MPC gains (`[control.mpc]`).
-    pub mpc: mpc::MpcGains,
+    pub mpc: MpcGains,
     /// Heading of the orientation field (deg from +x; the paper fixes 45° in static tests).
     pub field_heading_deg: f64,
     /// Magnitude of the orientation field.
@@ -75,7 +79,7 @@ impl Default for ControlConfig {
             controller: ControllerKind::Pid,
             pid: PidGains::default(),
             smc: SmcGains::default(),
-            mpc: mpc::MpcGains::default(),
+            mpc: MpcGains::default(),
             field_heading_deg: 45.0,
             field_magnitude_mt: 1.0,
             omega0_n_per_t: 0.05,
@@ -92,6 +96,19 @@ impl Default for ControlConfig {
 
 // The rig control allocates for must fit the contract's coil arrays.
 const _: () = assert!(fieldmaps::coils::COIL_COUNT <= MAX_COILS);
+
+impl ControlConfig {
+    /// The MPC gains of this table, with the force bound resolved from its current limits and
+    /// orientation field when the MPC is the selected controller.
+    pub fn mpc_gains(&self) -> MpcGains {
+        if self.controller != ControllerKind::Mpc {
+            return self.mpc.clone();
+        }
+        let heading = self.field_heading_deg.to_radians();
+        let field = Vector2::new(heading.cos(), heading.sin()) * (self.field_magnitude_mt * 1e-3);
+        self.mpc.resolved(&self.limits, &field, self.omega0_n_per_t)
+    }
+}
 
 /// One control decision, with what went into it (for logging and tests).
 #[derive(Debug, Clone)]
@@ -136,7 +153,7 @@ impl ControlLoop {
                 robot.diameter_m / 2.0,
             ),
         };
-        let mpc = mpc::MpcGains::for_config(&config);
+        let mpc = config.mpc_gains();
         let controller = config
             .controller
             .build(&config.pid, &config.smc, &mpc, model);
@@ -198,7 +215,7 @@ impl ControlLoop {
         }
         if let Some((t_prev, p_prev)) = self.last_good {
             let dt = t_ns.saturating_sub(t_prev) as f64 * 1e-9;
-            let reach = self.config.max_speed_mps * dt + 3e-3;
+            let reach = self.config.max_speed_mps * dt + POSE_JUMP_SLACK_M;
             if (p - p_prev).norm() > reach {
                 return Some("pose jumped farther than the robot can move");
             }

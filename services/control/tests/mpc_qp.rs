@@ -2,8 +2,8 @@
 //! the model, its Clarabel solution against a closed-form solve (unconstrained) and against
 //! projected-gradient descent (box-constrained small case).
 
+use millinav_control::controllers::mpc::{Mpc, MpcGains, MpcQp};
 use millinav_control::controllers::{ControlInput, NominalModel};
-use millinav_control::mpc::{Mpc, MpcGains, MpcQp};
 use millinav_control::reference::ReferenceSample;
 use nalgebra::{DVector, Vector2};
 

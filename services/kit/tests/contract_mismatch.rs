@@ -70,9 +70,8 @@ fn ports_refuse_a_service_of_another_contract_version() {
         .unwrap();
     let _old_publisher = old.publisher_builder().create().unwrap();
 
-    let error = Inbox::<Pose>::new(&node, services::POSE)
-        .err()
-        .expect("an Inbox<Pose> opened a v1 service");
+    let error =
+        Inbox::<Pose>::new(&node, services::POSE).expect_err("an Inbox<Pose> opened a v1 service");
     assert_mismatch(error, services::POSE, "millinav::Pose.v2");
     let error = Outbox::<Pose>::new(&node, services::POSE)
         .err()
@@ -104,8 +103,6 @@ fn frame_inbox_refuses_a_frame_header_of_another_version() {
         .user_header::<FrameHeaderV1>()
         .create()
         .unwrap();
-    let error = FrameInbox::new(&node)
-        .err()
-        .expect("a FrameInbox opened a v1 frame service");
+    let error = FrameInbox::new(&node).expect_err("a FrameInbox opened a v1 frame service");
     assert_mismatch(error, services::FRAME, "millinav::FrameHeader.v2");
 }

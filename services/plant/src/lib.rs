@@ -5,6 +5,7 @@
 pub mod fault_signals;
 pub mod model;
 pub mod render;
+pub mod rng_streams;
 pub mod teensy;
 pub mod trueflow;
 
@@ -327,7 +328,7 @@ impl<'s> Twin<'s> {
         let PlantSetup { config, model } = setup;
         let state = initial_state(scenario, &config, &model);
         let geometry = ImageGeometry::default();
-        let mut render_rng = model::run_rng(scenario.run.seed, 1);
+        let mut render_rng = rng_streams::run_rng(scenario.run.seed, rng_streams::CAMERA_SETUP);
         let camera = Camera::with_config(
             &model.phantom,
             geometry,
@@ -339,7 +340,9 @@ impl<'s> Twin<'s> {
         let contacts = ContactLog::create(&rt.env.run_dir.join(CONTACTS_CSV))?;
         std::fs::create_dir_all(&rt.env.run_dir)?;
         let teensy = EmulatedTeensy::start(
-            &rt.env.run_dir.join(millinav_coilbus::EMULATED_PORT_LINK),
+            &rt.env
+                .run_dir
+                .join(millinav_teensy_protocol::EMULATED_PORT_LINK),
             &rt.env.run_dir.join(TeensyEventRow::FILE_NAME),
             deadlines::TEENSY_WATCHDOG,
             COIL_COUNT,
@@ -415,7 +418,7 @@ impl<'s> Twin<'s> {
             ..Default::default()
         }
         .with_mapping(geometry.pixel_mapping());
-        let mut rng = model::run_rng(self.scenario.run.seed, 1000 + seq);
+        let mut rng = rng_streams::frame_noise_rng(self.scenario.run.seed, seq);
         let capsule = CapsulePose {
             position_m: shown.position_m,
             heading_rad: shown.heading_rad,

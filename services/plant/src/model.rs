@@ -23,11 +23,10 @@ use fieldmaps::phantom::Phantom;
 use fieldmaps::physics;
 use fieldmaps::rig::{FluidParams, RobotParams};
 use nalgebra::{Vector2, Vector3};
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
+use crate::rng_streams;
 use crate::trueflow::{FlowDisturbance, FlowNoiseConfig, FlowNoiseState, RecirculationConfig};
 
 /// Gravitational acceleration, m/s².
@@ -136,7 +135,7 @@ impl PlantModel {
         config: PlantPhysicsConfig,
         seed: u64,
     ) -> Self {
-        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x636f_696c);
+        let mut rng = rng_streams::coil_gain_rng(seed);
         let gain_noise = Normal::new(0.0, config.coil_gain_error_std.abs())
             .unwrap_or_else(|_| Normal::new(0.0, 0.0).expect("zero std is valid"));
         let mut coil_gains = [1.0; COIL_COUNT];
@@ -427,12 +426,4 @@ pub fn wrap_angle(a: f64) -> f64 {
         x += two_pi;
     }
     x - std::f64::consts::PI
-}
-
-/// Seeded per-run random source for everything stochastic in the twin.
-pub fn run_rng(seed: u64, stream: u64) -> ChaCha8Rng {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    rng.set_stream(stream);
-    let _: u64 = rng.random();
-    rng
 }

@@ -19,10 +19,10 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use millinav_coilbus::protocol::{
+use millinav_kit::runlog::{RunLogWriter, TeensyEventRow};
+use millinav_teensy_protocol::{
     amps_to_ma, encode, ma_to_amps, AckStatus, CoilValues, Decoder, Message, Packet, FLAG_SAFE_ZERO,
 };
-use millinav_kit::runlog::{RunLogWriter, TeensyEventRow};
 use serialport::{SerialPort, TTYPort};
 use shm_schemas::{MAX_COILS, NO_FRAME};
 

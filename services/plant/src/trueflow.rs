@@ -20,6 +20,8 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
+use crate::rng_streams;
+
 /// Number of smooth spatial modes of the flow noise.
 pub const FLOW_NOISE_MODES: usize = 6;
 /// Width of the smooth edges of the recirculation band, m.
@@ -76,8 +78,8 @@ impl Default for FlowNoiseConfig {
 }
 
 /// Evolving state of the flow noise: the modes' OU amplitudes and the generator that drives
-/// them. Part of [`crate::model::PlantState`], so two runs with the same seed and the same
-/// steps evolve identically.
+/// them. Part of the plant state (`model::PlantState`), so two runs with the same seed and the
+/// same steps evolve identically.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FlowNoiseState {
     pub amplitudes: [f64; FLOW_NOISE_MODES],
@@ -113,7 +115,7 @@ impl FlowDisturbance {
         peak_speed_mps: f64,
         seed: u64,
     ) -> Self {
-        let mut rng = crate::model::run_rng(seed, 0x666c_6f77);
+        let mut rng = rng_streams::run_rng(seed, rng_streams::FLOW_DISTURBANCE);
         let orbit_phase = rng.random_range(0.0..std::f64::consts::TAU);
         let strength_phase = rng.random_range(0.0..std::f64::consts::TAU);
         let (l0, l1) = ordered(noise.wavelength_mm[0] * 1e-3, noise.wavelength_mm[1] * 1e-3);
@@ -155,7 +157,7 @@ impl FlowDisturbance {
 
     /// Noise state at t = 0, drawn from the stationary distribution.
     pub fn initial_noise(&self, seed: u64) -> FlowNoiseState {
-        let mut rng = crate::model::run_rng(seed, 0x6e6f_6973);
+        let mut rng = rng_streams::run_rng(seed, rng_streams::FLOW_NOISE);
         let mut amplitudes = [0.0; FLOW_NOISE_MODES];
         for a in amplitudes.iter_mut() {
             *a = StandardNormal.sample(&mut rng);

@@ -4,10 +4,10 @@ use std::time::Instant;
 
 use fieldmaps::phantom::{ImageGeometry, Phantom};
 use fieldmaps::rig::RobotParams;
-use millinav_plant::model::run_rng;
 use millinav_plant::render::{
     blur_rgb, Camera, CameraConfig, CapsulePose, MASK_BODY, MASK_CAP, MASK_MAGNET,
 };
+use millinav_plant::rng_streams::run_rng;
 use nalgebra::Vector2;
 
 fn camera(config: CameraConfig) -> Camera {

@@ -405,6 +405,10 @@ fn parse_payload(kind: MessageKind, payload: &[u8]) -> Option<Message> {
     }
 }
 
+/// Name of the emulated Teensy's pty link inside a run directory: the plant's emulated board
+/// creates it, coilbus opens it when its port is `auto`.
+pub const EMULATED_PORT_LINK: &str = "teensy.pty";
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -4,8 +4,8 @@
 
 use std::time::Instant;
 
-use millinav_unet::dataset::Split;
-use millinav_unet::roi::{Crop, DOWNSAMPLE, INPUT_PX};
+use millinav_roi::dataset::Split;
+use millinav_roi::roi::{Crop, DOWNSAMPLE, INPUT_PX};
 use opencv::prelude::*;
 
 use crate::classical::ClassicalLocalizer;

@@ -4,6 +4,7 @@
 
 pub mod classical;
 pub mod eval;
+pub mod ort_version;
 pub mod unet;
 
 use millinav_kit::ports::{FrameInbox, Outbox};
@@ -379,8 +380,8 @@ fn pose_for_frame(
                 invalid_pose(header)
             } else {
                 let result = pipeline.process(rgb, w as usize, h as usize, header.mm_per_px);
-                let log_image =
-                    config.image_log_every > 0 && header.stamp.seq % config.image_log_every == 0;
+                let log_image = config.image_log_every > 0
+                    && header.stamp.seq.is_multiple_of(config.image_log_every);
                 recording::set_time(rec, header.stamp.capture_time_ns, header.stamp.seq);
                 let mask = result.classical_mask.as_ref().map(|(m, r)| (m, *r));
                 match &result.detection {

@@ -1,10 +1,10 @@
 //! UNet localizer (paper Sec. II-B): mask + tip/centroid/tail keypoints from a 96x96 ROI,
 //! run with ONNX Runtime (shared library from the PyPI `onnxruntime` wheel, loaded at start).
-//! The ROI preprocessing is `millinav_unet::roi`, the same code that made the training data.
+//! The ROI preprocessing is `millinav_roi::roi`, the same code that made the training data.
 
 use std::path::{Path, PathBuf};
 
-use millinav_unet::roi::{extract_rgb, to_chw_f32, Crop, INPUT_PX};
+use millinav_roi::roi::{extract_rgb, to_chw_f32, Crop, INPUT_PX};
 use ort::session::Session;
 use ort::value::TensorRef;
 
@@ -30,10 +30,14 @@ fn environment(runtime: &Path) -> Result<ort::environment::Environment, String> 
         std::sync::OnceLock::new();
     ENVIRONMENT
         .get_or_init(|| {
-            ort::init_from(runtime)
+            // Checked before ort loads it, and held until ort has (see `open_checked`).
+            let checked = crate::ort_version::open_checked(runtime).map_err(|e| e.to_string())?;
+            let environment = ort::init_from(runtime)
                 .map_err(|e| e.to_string())?
                 .build()
-                .map_err(|e| e.to_string())
+                .map_err(|e| e.to_string());
+            drop(checked);
+            environment
         })
         .clone()
 }
@@ -156,7 +160,7 @@ impl UnetLocalizer {
             input: Vec::new(),
             expected_length_px: capsule_length_mm
                 / mm_per_px
-                / millinav_unet::roi::DOWNSAMPLE as f64,
+                / millinav_roi::roi::DOWNSAMPLE as f64,
         })
     }
 
@@ -245,7 +249,7 @@ pub fn detection_from_output(
         return Err(LocalizeError::Ambiguous);
     }
     let to_frame = |p: (f64, f64)| crop.input_to_frame(p.0, p.1);
-    let f = millinav_unet::roi::DOWNSAMPLE as f64;
+    let f = millinav_roi::roi::DOWNSAMPLE as f64;
     let confidence = 1.0 / (1.0 + (-out.presence_logit).exp());
     Ok(Detection {
         centroid_px: to_frame(centroid),

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use millinav_unet::dataset::Split;
+use millinav_roi::dataset::Split;
 use millinav_vision::classical::CapsuleSize;
 use millinav_vision::eval::{evaluate_unet, table};
 use millinav_vision::unet::{find_onnxruntime, UnetError, UnetLocalizer};

@@ -9,7 +9,6 @@ use fieldmaps::coils::CoilSystem;
 use fieldmaps::physics;
 use fieldmaps::rig::{CoilLimits, RobotParams};
 use millinav_control::controllers::{ControlInput, Controller, ControllerKind, NominalModel};
-use millinav_control::mpc::MpcGains;
 use millinav_control::reference::Reference;
 use millinav_control::{ControlConfig, ControlLoop};
 use nalgebra::{DMatrix, DVector, Vector2, Vector3};
@@ -59,7 +58,7 @@ impl ControllerBench {
             controller: kind,
             ..Default::default()
         };
-        let mpc = MpcGains::for_config(&config);
+        let mpc = config.mpc_gains();
         Ok(Self {
             controller: kind.build(&config.pid, &config.smc, &mpc, model()),
             reference: reference()?,

@@ -1,5 +1,5 @@
 //! `experiments`: the paper's matrix on the twin, with tables and figures.
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
 
@@ -9,7 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use millinav_experiments::report::{self, Outcome};
 use millinav_experiments::{
     cell_scenario, fast_run, metrics, paper_matrix, process_run, recorded_run, reference_of,
-    write_rrd, Cell, TraceRow,
+    write_rrd, Cell, Metrics, TraceRow,
 };
 use millinav_kit::scenario::Scenario;
 
@@ -66,9 +66,39 @@ struct Args {
     out: PathBuf,
 }
 
+/// Traces of the first trial (seed 1) of each cell, for the trace figures.
+type FirstTrials = Vec<(Cell, Vec<TraceRow>)>;
+
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let root = std::env::current_dir()?;
+    let base = load_base(&args)?;
+    let cells = selected_cells(&args)?;
+    std::fs::create_dir_all(&args.out)?;
+    let threads = match args.mode {
+        Mode::Fast => args.threads.max(1),
+        Mode::Process => 1,
+    };
+    let start = Instant::now();
+    let (mut outcomes, traces) = run_cells(&args, &base, &root, cells, threads)?;
+    outcomes.sort_by_key(|o| o.cell.name());
+    let mode = format!("{:?}", args.mode).to_lowercase();
+    write_tables(&args, &base, &outcomes, &mode)?;
+    println!(
+        "{} runs in {:.1} s ({mode} mode, {threads} threads)",
+        outcomes.len(),
+        start.elapsed().as_secs_f64()
+    );
+    if report::register_font() {
+        write_figures(&args, &base, &outcomes, &traces)?;
+    } else {
+        eprintln!("no DejaVu font found (apt install fonts-dejavu-core): figures skipped");
+    }
+    Ok(())
+}
+
+/// The base scenario, with `--frame-period-ms` applied.
+fn load_base(args: &Args) -> anyhow::Result<Scenario> {
     let mut base = Scenario::load(&args.base)
         .with_context(|| format!("base scenario {}", args.base.display()))?;
     if let Some(period) = args.frame_period_ms {
@@ -78,6 +108,11 @@ fn main() -> anyhow::Result<()> {
         );
         base.run.frame_period_ms = period;
     }
+    Ok(base)
+}
+
+/// The matrix's cells that `--beyond`, `--controllers` and `--only` select (at least one).
+fn selected_cells(args: &Args) -> anyhow::Result<Vec<Cell>> {
     // Naming a beyond-the-paper controller asks for it, with or without --beyond.
     let beyond = args.beyond
         || args
@@ -115,7 +150,18 @@ fn main() -> anyhow::Result<()> {
         "no cell of the matrix matches --only {:?} (cell names look like 4.3cp_q250_smc-dob-auto_s1)",
         args.only
     );
-    std::fs::create_dir_all(&args.out)?;
+    Ok(cells)
+}
+
+/// Runs every cell on `threads` workers with a progress bar; returns the outcomes (in no
+/// particular order) and the first trials' traces.
+fn run_cells(
+    args: &Args,
+    base: &Scenario,
+    root: &Path,
+    cells: Vec<Cell>,
+    threads: usize,
+) -> anyhow::Result<(Vec<Outcome>, FirstTrials)> {
     let bin_dir = std::env::current_exe()?
         .parent()
         .context("exe dir")?
@@ -125,62 +171,28 @@ fn main() -> anyhow::Result<()> {
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let outcomes: Mutex<Vec<Outcome>> = Mutex::new(Vec::new());
-    let traces: Mutex<Vec<(Cell, Vec<TraceRow>)>> = Mutex::new(Vec::new());
-    let queue = Mutex::new(cells.clone());
-    let start = Instant::now();
-    let threads = match args.mode {
-        Mode::Fast => args.threads.max(1),
-        Mode::Process => 1,
-    };
+    let traces: Mutex<FirstTrials> = Mutex::new(Vec::new());
+    let queue = Mutex::new(cells);
+    let poisoned = || anyhow::anyhow!("poisoned");
     let work = || -> anyhow::Result<()> {
         loop {
-            let Some(cell) = queue.lock().map_err(|_| anyhow::anyhow!("poisoned"))?.pop() else {
+            let Some(cell) = queue.lock().map_err(|_| poisoned())?.pop() else {
                 return Ok(());
             };
-            let text = cell_scenario(&base, &cell, &root)?;
-            let scenario = Scenario::parse(&text, &args.out.join(format!("{}.toml", cell.name())))?;
-            let t0 = Instant::now();
-            let trace = match args.mode {
-                Mode::Fast => fast_run(&scenario)?,
-                Mode::Process if args.reuse_runs => {
-                    recorded_run(&text, &args.out.join("runs").join(cell.name()))?
-                }
-                Mode::Process => {
-                    process_run(&text, &bin_dir, &args.out.join("runs"), &cell.name())?
-                }
-            };
-            let reference = reference_of(&scenario)?;
-            if args.mode == Mode::Fast && !args.no_rrd {
-                let runs = args.out.join("runs");
-                std::fs::create_dir_all(&runs)?;
-                write_rrd(
-                    &runs.join(format!("{}.rrd", cell.name())),
-                    &cell.name(),
-                    &trace,
-                    &reference,
-                )?;
-            }
-            let m = metrics(
-                &trace,
-                &reference,
-                fieldmaps::rig::CoilLimits::default().coil_resistance_ohm,
-            );
+            let (trace, m, wall_s) = run_cell(args, base, root, &bin_dir, &cell)?;
             bar.set_message(format!("{} RMSE {:.2} mm", cell.name(), m.rmse_mm));
             bar.inc(1);
             if cell.seed == 1 {
                 traces
                     .lock()
-                    .map_err(|_| anyhow::anyhow!("poisoned"))?
+                    .map_err(|_| poisoned())?
                     .push((cell.clone(), trace));
             }
-            outcomes
-                .lock()
-                .map_err(|_| anyhow::anyhow!("poisoned"))?
-                .push(Outcome {
-                    cell,
-                    metrics: m,
-                    wall_s: t0.elapsed().as_secs_f64(),
-                });
+            outcomes.lock().map_err(|_| poisoned())?.push(Outcome {
+                cell,
+                metrics: m,
+                wall_s,
+            });
         }
     };
     std::thread::scope(|s| -> anyhow::Result<()> {
@@ -191,84 +203,128 @@ fn main() -> anyhow::Result<()> {
         Ok(())
     })?;
     bar.finish();
-    let mut outcomes = outcomes
-        .into_inner()
-        .map_err(|_| anyhow::anyhow!("poisoned"))?;
-    outcomes.sort_by_key(|o| o.cell.name());
-    let mode = format!("{:?}", args.mode).to_lowercase();
-    report::write_csv(&outcomes, &args.out.join("results.csv"))?;
+    Ok((
+        outcomes.into_inner().map_err(|_| poisoned())?,
+        traces.into_inner().map_err(|_| poisoned())?,
+    ))
+}
+
+/// One cell's run in the selected mode (with its Rerun recording in fast mode), its metrics,
+/// and the seconds it took.
+fn run_cell(
+    args: &Args,
+    base: &Scenario,
+    root: &Path,
+    bin_dir: &Path,
+    cell: &Cell,
+) -> anyhow::Result<(Vec<TraceRow>, Metrics, f64)> {
+    let text = cell_scenario(base, cell, root)?;
+    let scenario = Scenario::parse(&text, &args.out.join(format!("{}.toml", cell.name())))?;
+    let t0 = Instant::now();
+    let trace = match args.mode {
+        Mode::Fast => fast_run(&scenario)?,
+        Mode::Process if args.reuse_runs => {
+            recorded_run(&text, &args.out.join("runs").join(cell.name()))?
+        }
+        Mode::Process => process_run(&text, bin_dir, &args.out.join("runs"), &cell.name())?,
+    };
+    let reference = reference_of(&scenario)?;
+    if args.mode == Mode::Fast && !args.no_rrd {
+        let runs = args.out.join("runs");
+        std::fs::create_dir_all(&runs)?;
+        write_rrd(
+            &runs.join(format!("{}.rrd", cell.name())),
+            &cell.name(),
+            &trace,
+            &reference,
+        )?;
+    }
+    let m = metrics(
+        &trace,
+        &reference,
+        fieldmaps::rig::CoilLimits::default().coil_resistance_ohm,
+    );
+    Ok((trace, m, t0.elapsed().as_secs_f64()))
+}
+
+/// results.csv and table.md (also printed).
+fn write_tables(
+    args: &Args,
+    base: &Scenario,
+    outcomes: &[Outcome],
+    mode: &str,
+) -> anyhow::Result<()> {
+    report::write_csv(outcomes, &args.out.join("results.csv"))?;
     let table = report::markdown_table(
-        &outcomes,
+        outcomes,
         &format!("{mode}, {} ms frame period", base.run.frame_period_ms),
     );
-    let table = table + &report::target_checks(&outcomes);
+    let table = table + &report::target_checks(outcomes);
     std::fs::write(args.out.join("table.md"), &table)?;
     println!("{table}");
-    println!(
-        "{} runs in {:.1} s ({mode} mode, {threads} threads)",
-        outcomes.len(),
-        start.elapsed().as_secs_f64()
-    );
-    if report::register_font() {
-        use report::BarMetric;
-        let bars: [(BarMetric, &[&str], &str, &str); 4] = [
-            (
-                BarMetric::Rmse,
-                &[],
-                "RMSE by condition and controller (mean of trials)",
-                "rmse_bars.png",
-            ),
-            (
-                BarMetric::P95,
-                &[],
-                "P95 error by condition and controller (mean of trials)",
-                "p95_bars.png",
-            ),
-            (
-                BarMetric::Max,
-                &[],
-                "Max error by condition and controller (mean of trials)",
-                "max_bars.png",
-            ),
-            (
-                BarMetric::Rmse,
-                &["smc-dob", "smc", "smc-dob-auto", "smc-auto"],
-                "DOB ablation: RMSE with and without the observer",
-                "dob_ablation.png",
-            ),
-        ];
-        for (metric, only, title, file) in bars {
-            report::metric_bars(&outcomes, metric, only, title, &args.out.join(file))
-                .map_err(|e| anyhow::anyhow!("{e}"))?;
-        }
-        let traces = traces
-            .into_inner()
-            .map_err(|_| anyhow::anyhow!("poisoned"))?;
-        let reference = reference_of(&base)?;
-        let mut conditions: Vec<(i64, String)> = traces
+    Ok(())
+}
+
+/// The metric bar charts and, per condition, the first trials' trajectories.
+fn write_figures(
+    args: &Args,
+    base: &Scenario,
+    outcomes: &[Outcome],
+    traces: &FirstTrials,
+) -> anyhow::Result<()> {
+    use report::BarMetric;
+    let bars: [(BarMetric, &[&str], &str, &str); 4] = [
+        (
+            BarMetric::Rmse,
+            &[],
+            "RMSE by condition and controller (mean of trials)",
+            "rmse_bars.png",
+        ),
+        (
+            BarMetric::P95,
+            &[],
+            "P95 error by condition and controller (mean of trials)",
+            "p95_bars.png",
+        ),
+        (
+            BarMetric::Max,
+            &[],
+            "Max error by condition and controller (mean of trials)",
+            "max_bars.png",
+        ),
+        (
+            BarMetric::Rmse,
+            &["smc-dob", "smc", "smc-dob-auto", "smc-auto"],
+            "DOB ablation: RMSE with and without the observer",
+            "dob_ablation.png",
+        ),
+    ];
+    for (metric, only, title, file) in bars {
+        report::metric_bars(outcomes, metric, only, title, &args.out.join(file))
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    let reference = reference_of(base)?;
+    let mut conditions: Vec<(i64, String)> = traces
+        .iter()
+        .map(|(c, _)| ((c.viscosity_cp * 10.0) as i64, c.flow.label().to_string()))
+        .collect();
+    conditions.sort();
+    conditions.dedup();
+    for (v, flow) in conditions {
+        let mut runs: Vec<(String, Vec<TraceRow>)> = traces
             .iter()
-            .map(|(c, _)| ((c.viscosity_cp * 10.0) as i64, c.flow.label().to_string()))
+            .filter(|(c, _)| (c.viscosity_cp * 10.0) as i64 == v && c.flow.label() == flow)
+            .map(|(c, t)| (c.controller.clone(), t.clone()))
             .collect();
-        conditions.sort();
-        conditions.dedup();
-        for (v, flow) in conditions {
-            let mut runs: Vec<(String, Vec<TraceRow>)> = traces
-                .iter()
-                .filter(|(c, _)| (c.viscosity_cp * 10.0) as i64 == v && c.flow.label() == flow)
-                .map(|(c, t)| (c.controller.clone(), t.clone()))
-                .collect();
-            runs.sort_by(|a, b| a.0.cmp(&b.0));
-            let title = format!("{} cP, {flow}", v as f64 / 10.0);
-            let file = format!(
-                "traces_{}cp_{}.png",
-                v as f64 / 10.0,
-                flow.replace([' ', '/'], "")
-            );
-            report::traces_figure(&runs, &reference, &title, &args.out.join(file))
-                .map_err(|e| anyhow::anyhow!("{e}"))?;
-        }
-    } else {
-        eprintln!("no DejaVu font found (apt install fonts-dejavu-core): figures skipped");
+        runs.sort_by(|a, b| a.0.cmp(&b.0));
+        let title = format!("{} cP, {flow}", v as f64 / 10.0);
+        let file = format!(
+            "traces_{}cp_{}.png",
+            v as f64 / 10.0,
+            flow.replace([' ', '/'], "")
+        );
+        report::traces_figure(&runs, &reference, &title, &args.out.join(file))
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
     }
     Ok(())
 }

@@ -404,6 +404,17 @@ impl CfdStats {
     }
 }
 
+/// Largest lattice accepted, cells (memory and run time).
+const MAX_LATTICE_CELLS: usize = 16_000_000;
+/// An opening on the image edge belongs to the port whose edge point is nearest, within this.
+const OPENING_MATCH_RADIUS_M: f64 = 4e-3;
+/// Upper bound on the relaxation time τ; the time step is shortened to keep τ at or below it.
+const TAU_MAX: f64 = 1.5;
+/// Lower bound on τ: below it the lattice is too coarse for the viscosity to be resolved.
+const TAU_MIN: f64 = 0.51;
+/// Passes that rescale an inlet's wall-side links so the injected flux matches the inlet's flow.
+const INLET_FLUX_PASSES: usize = 2;
+
 /// Solves one condition on `mask` with `ports`; `progress(steps, residual)` is called at each
 /// convergence check.
 pub fn solve(
@@ -414,6 +425,66 @@ pub fn solve(
     progress: impl FnMut(usize, f64),
 ) -> Result<(FlowMap, CfdStats), CfdError> {
     let started = Instant::now();
+    check_parameters(condition, settings)?;
+    let (lo, hi) = view_rect(mask.geometry());
+    let grid = Grid::over(lo, hi, settings.dx_m)?;
+    let fluid = grid.fluid_cells(mask);
+    let openings = match_openings(find_openings(&fluid, &grid), ports)?;
+    let inlets = Inlets::new(&openings, condition, settings.depth_m, grid.dx)?;
+    let nu = condition.viscosity_pa_s / settings.density_kg_m3;
+    let units = LatticeUnits::new(settings, nu, grid.dx, inlets.peak_mps)?;
+    let mut lat = build_lattice(&grid, &fluid, &openings, &inlets, &units)?;
+    let convergence = lat.run(
+        settings.max_steps,
+        settings.tolerance,
+        settings.check_every,
+        progress,
+    )?;
+    let (inflow, outflow) = port_flows(&lat, &openings, &units, grid.dx, settings.depth_m);
+    let map = sample_control_plane(
+        &lat,
+        &grid,
+        mask,
+        ports,
+        &MapGrid::over(lo, hi, settings.out_spacing_m),
+        &units,
+    );
+
+    let tube_area = std::f64::consts::PI * 0.25 * fieldmaps::phantom::INLET_DIAMETER_M.powi(2);
+    let tube_mean = 0.5 * condition.flow_m3_s / tube_area;
+    let mut stats = CfdStats {
+        condition: condition.clone(),
+        convergence,
+        lattice: (grid.nx, grid.ny),
+        fluid_cells: lat.fluid_cells(),
+        dx_m: grid.dx,
+        dt_s: units.dt,
+        tau: units.tau,
+        inlet_mean_mps: inlets.mean_mps,
+        tube_mean_mps: tube_mean,
+        tube_reynolds: settings.density_kg_m3 * tube_mean * fieldmaps::phantom::INLET_DIAMETER_M
+            / condition.viscosity_pa_s,
+        inflow_m3_s: inflow,
+        outflow_m3_s: outflow,
+        peak_mps: 0.0,
+        peak_at_m: Vector2::zeros(),
+        chamber_peak_mps: 0.0,
+        chamber_peak_at_m: Vector2::zeros(),
+        disturbance_mean_ratio: 0.0,
+        recirculating_points: 0,
+        recirculating_fraction: 0.0,
+        recirculating_in_band: 0.0,
+        recirculating_outside_band: 0.0,
+        recirculating_y_m: (0.0, 0.0),
+        seconds: 0.0,
+    };
+    analyse(&map, mask, ports, &mut stats);
+    stats.seconds = started.elapsed().as_secs_f64();
+    Ok((map, stats))
+}
+
+/// Rejects settings and conditions the solver cannot use.
+fn check_parameters(condition: &Condition, settings: &CfdSettings) -> Result<(), CfdError> {
     let bad = |m: &str| Err(CfdError::BadParameter(m.to_string()));
     if !(settings.dx_m > 0.0 && settings.dx_m.is_finite()) {
         return bad("dx must be > 0");
@@ -433,27 +504,47 @@ pub fn solve(
     if !(settings.lattice_velocity > 0.0 && settings.lattice_velocity <= 0.2) {
         return bad("lattice velocity must be in (0, 0.2]");
     }
-    let geom = mask.geometry();
-    let (lo, hi) = view_rect(geom);
-    let nx = ((hi.x - lo.x) / settings.dx_m).round().max(2.0) as usize;
-    let ny = ((hi.y - lo.y) / settings.dx_m).round().max(2.0) as usize;
-    if nx * ny > 16_000_000 {
-        return bad("lattice larger than 16 M cells; use a larger --dx-mm");
-    }
-    let dx = (hi.x - lo.x) / nx as f64;
-    let grid = Grid {
-        nx,
-        ny,
-        dx,
-        x0: lo.x,
-        y0: lo.y,
-    };
-    let fluid: Vec<bool> = (0..nx * ny)
-        .map(|k| mask.contains(&grid.centre((k % nx) as i64, (k / nx) as i64)))
-        .collect();
+    Ok(())
+}
 
-    // Match openings to ports.
-    let openings = find_openings(&fluid, &grid);
+impl Grid {
+    /// Square cells of about `dx_m` over the view rectangle `lo`..`hi`.
+    fn over(lo: Vector2<f64>, hi: Vector2<f64>, dx_m: f64) -> Result<Self, CfdError> {
+        let nx = ((hi.x - lo.x) / dx_m).round().max(2.0) as usize;
+        let ny = ((hi.y - lo.y) / dx_m).round().max(2.0) as usize;
+        if nx * ny > MAX_LATTICE_CELLS {
+            return Err(CfdError::BadParameter(
+                "lattice larger than 16 M cells; use a larger --dx-mm".to_string(),
+            ));
+        }
+        Ok(Self {
+            nx,
+            ny,
+            dx: (hi.x - lo.x) / nx as f64,
+            x0: lo.x,
+            y0: lo.y,
+        })
+    }
+
+    /// Whether each cell (row-major from the lower-left corner) has its centre in the canal.
+    fn fluid_cells(&self, mask: &CanalMask) -> Vec<bool> {
+        (0..self.nx * self.ny)
+            .map(|k| mask.contains(&self.centre((k % self.nx) as i64, (k / self.nx) as i64)))
+            .collect()
+    }
+}
+
+/// An opening of the lattice with the port it belongs to.
+struct PortOpening<'a> {
+    opening: Opening,
+    port: &'a Port,
+}
+
+/// Pairs every opening with the nearest port; every port must get exactly one opening.
+fn match_openings(
+    openings: Vec<Opening>,
+    ports: &[Port],
+) -> Result<Vec<PortOpening<'_>>, CfdError> {
     let port_names = ports
         .iter()
         .map(|p| {
@@ -466,14 +557,14 @@ pub fn solve(
         })
         .collect::<Vec<_>>()
         .join(", ");
-    let mut assigned: Vec<Option<usize>> = vec![None; ports.len()];
-    let mut opening_port = Vec::with_capacity(openings.len());
-    for (k, op) in openings.iter().enumerate() {
+    let mut assigned = vec![false; ports.len()];
+    let mut matched = Vec::with_capacity(openings.len());
+    for op in openings {
         let best = ports
             .iter()
             .enumerate()
             .map(|(pi, p)| (pi, (p.edge_point_m - op.centre_m).norm()))
-            .filter(|&(_, d)| d < 4e-3)
+            .filter(|&(_, d)| d < OPENING_MATCH_RADIUS_M)
             .min_by(|a, b| a.1.total_cmp(&b.1));
         let Some((pi, _)) = best else {
             return Err(CfdError::UnmatchedOpening {
@@ -482,63 +573,131 @@ pub fn solve(
                 ports: port_names,
             });
         };
-        if assigned[pi].is_some() {
+        if assigned[pi] {
             return Err(CfdError::AmbiguousPort(ports[pi].name.clone()));
         }
-        assigned[pi] = Some(k);
-        opening_port.push(pi);
+        assigned[pi] = true;
+        matched.push(PortOpening {
+            opening: op,
+            port: &ports[pi],
+        });
     }
-    if let Some(pi) = assigned.iter().position(Option::is_none) {
+    if let Some(pi) = assigned.iter().position(|&a| !a) {
         return Err(CfdError::MissingPort(ports[pi].name.clone()));
     }
+    Ok(matched)
+}
 
-    // Physical inlet velocities: parabolic across each opening, flux = fraction · Q / H.
-    let h = settings.depth_m;
-    let nu = condition.viscosity_pa_s / settings.density_kg_m3;
-    let mut inlet_profiles: Vec<(usize, Vec<f64>)> = Vec::new();
-    let mut inlet_mean = 0.0f64;
-    let mut peak_in = 0.0f64;
-    for (k, op) in openings.iter().enumerate() {
-        if let PortKind::Inlet { flow_fraction } = ports[opening_port[k]].kind {
-            let n = op.cells.len();
-            let width = n as f64 * dx;
-            let mean = flow_fraction * condition.flow_m3_s / (width * h);
-            let shape: Vec<f64> = (0..n)
-                .map(|c| {
-                    let s = (c as f64 + 0.5) / n as f64;
-                    4.0 * s * (1.0 - s)
-                })
-                .collect();
-            let sum: f64 = shape.iter().sum();
-            let profile: Vec<f64> = shape.iter().map(|s| s * mean * n as f64 / sum).collect();
-            peak_in = profile.iter().copied().fold(peak_in, f64::max);
-            inlet_mean = inlet_mean.max(mean);
-            inlet_profiles.push((k, profile));
+/// Physical inlet velocities: parabolic across each inlet opening, flux = fraction · Q / H.
+struct Inlets {
+    /// (index into the port openings, velocity of each cell across the opening in m/s).
+    profiles: Vec<(usize, Vec<f64>)>,
+    /// Largest mean inlet velocity, m/s.
+    mean_mps: f64,
+    /// Largest inlet cell velocity, m/s.
+    peak_mps: f64,
+}
+
+impl Inlets {
+    fn new(
+        openings: &[PortOpening<'_>],
+        condition: &Condition,
+        depth_m: f64,
+        dx: f64,
+    ) -> Result<Self, CfdError> {
+        let mut profiles: Vec<(usize, Vec<f64>)> = Vec::new();
+        let mut mean_mps = 0.0f64;
+        let mut peak_mps = 0.0f64;
+        for (k, po) in openings.iter().enumerate() {
+            if let PortKind::Inlet { flow_fraction } = po.port.kind {
+                let n = po.opening.cells.len();
+                let width = n as f64 * dx;
+                let mean = flow_fraction * condition.flow_m3_s / (width * depth_m);
+                let shape: Vec<f64> = (0..n)
+                    .map(|c| {
+                        let s = (c as f64 + 0.5) / n as f64;
+                        4.0 * s * (1.0 - s)
+                    })
+                    .collect();
+                let sum: f64 = shape.iter().sum();
+                let profile: Vec<f64> = shape.iter().map(|s| s * mean * n as f64 / sum).collect();
+                peak_mps = profile.iter().copied().fold(peak_mps, f64::max);
+                mean_mps = mean_mps.max(mean);
+                profiles.push((k, profile));
+            }
         }
+        if peak_mps <= 0.0 {
+            return Err(CfdError::BadParameter("no inlet".to_string()));
+        }
+        Ok(Self {
+            profiles,
+            mean_mps,
+            peak_mps,
+        })
     }
-    if peak_in <= 0.0 {
-        return bad("no inlet");
-    }
-    // Time step from the lattice Mach number; keep τ ≤ 1.5.
-    let mut dt = settings.lattice_velocity * dx / peak_in;
-    let tau_max = 1.5;
-    if 3.0 * nu * dt / (dx * dx) + 0.5 > tau_max {
-        dt = (tau_max - 0.5) / 3.0 * dx * dx / nu;
-    }
-    let nu_lat = nu * dt / (dx * dx);
-    let tau = 3.0 * nu_lat + 0.5;
-    if tau < 0.51 {
-        return Err(CfdError::TooCoarse { tau });
-    }
-    let to_lattice = dt / dx;
-    let friction = 12.0 * nu / (h * h) * dt;
+}
 
+/// The lattice's time step and the physical quantities in lattice units.
+struct LatticeUnits {
+    /// Time step, s.
+    dt: f64,
+    /// Kinematic viscosity in lattice units.
+    nu_lat: f64,
+    /// Relaxation time.
+    tau: f64,
+    /// Hele-Shaw wall friction per step.
+    friction: f64,
+    /// Physical velocity (m/s) → lattice velocity.
+    to_lattice: f64,
+    /// Lattice velocity → physical velocity (m/s).
+    to_phys: f64,
+}
+
+impl LatticeUnits {
+    /// Time step from the lattice Mach number of the fastest inlet cell, shortened to keep
+    /// τ ≤ `TAU_MAX`.
+    fn new(
+        settings: &CfdSettings,
+        nu: f64,
+        dx: f64,
+        peak_inlet_mps: f64,
+    ) -> Result<Self, CfdError> {
+        let h = settings.depth_m;
+        let mut dt = settings.lattice_velocity * dx / peak_inlet_mps;
+        if 3.0 * nu * dt / (dx * dx) + 0.5 > TAU_MAX {
+            dt = (TAU_MAX - 0.5) / 3.0 * dx * dx / nu;
+        }
+        let nu_lat = nu * dt / (dx * dx);
+        let tau = 3.0 * nu_lat + 0.5;
+        if tau < TAU_MIN {
+            return Err(CfdError::TooCoarse { tau });
+        }
+        Ok(Self {
+            dt,
+            nu_lat,
+            tau,
+            friction: 12.0 * nu / (h * h) * dt,
+            to_lattice: dt / dx,
+            to_phys: dx / dt,
+        })
+    }
+}
+
+/// The lattice with walls, the inlets' velocity profiles and the pressure outlets.
+fn build_lattice(
+    grid: &Grid,
+    fluid: &[bool],
+    openings: &[PortOpening<'_>],
+    inlets: &Inlets,
+    units: &LatticeUnits,
+) -> Result<Lattice, CfdError> {
+    let nx = grid.nx;
     let mut lat = Lattice::new(
         nx,
-        ny,
+        grid.ny,
         LbmParams {
-            nu: nu_lat,
-            friction,
+            nu: units.nu_lat,
+            friction: units.friction,
             body_force: [0.0; 2],
         },
     )?;
@@ -547,15 +706,15 @@ pub fn solve(
             lat.set((k % nx) as i64, (k / nx) as i64, Node::Wall)?;
         }
     }
-    for (k, profile) in &inlet_profiles {
-        let op = &openings[*k];
+    for (k, profile) in &inlets.profiles {
+        let op = &openings[*k].opening;
         // The links at the ends of an opening (next to the wall) carry less than Σu; rescale
         // so the mass actually injected is the inlet's flow.
-        let target: f64 = profile.iter().sum::<f64>() * to_lattice;
+        let target: f64 = profile.iter().sum::<f64>() * units.to_lattice;
         let mut gain = 1.0;
-        for _ in 0..2 {
+        for _ in 0..INLET_FLUX_PASSES {
             for (&(gi, gj), &u) in op.ghosts.iter().zip(profile) {
-                let s = u * to_lattice * gain;
+                let s = u * units.to_lattice * gain;
                 lat.set(gi, gj, Node::Moving([op.inward[0] * s, op.inward[1] * s]))?;
             }
             let injected = lat.injected_flux(&op.ghosts);
@@ -564,53 +723,86 @@ pub fn solve(
             }
         }
     }
-    for (k, op) in openings.iter().enumerate() {
-        if ports[opening_port[k]].kind == PortKind::Outlet {
-            for &(gi, gj) in &op.ghosts {
+    for po in openings {
+        if po.port.kind == PortKind::Outlet {
+            for &(gi, gj) in &po.opening.ghosts {
                 lat.set(gi, gj, Node::Pressure)?;
             }
         }
     }
-    let convergence = lat.run(
-        settings.max_steps,
-        settings.tolerance,
-        settings.check_every,
-        progress,
-    )?;
+    Ok(lat)
+}
 
-    // Fluxes through the ports (2D flux × H).
-    let to_phys = dx / dt;
+/// Total inflow and outflow through the ports (2D flux × H), m³/s.
+fn port_flows(
+    lat: &Lattice,
+    openings: &[PortOpening<'_>],
+    units: &LatticeUnits,
+    dx: f64,
+    depth_m: f64,
+) -> (f64, f64) {
     let mut inflow = 0.0;
     let mut outflow = 0.0;
-    for (k, op) in openings.iter().enumerate() {
+    for po in openings {
+        let op = &po.opening;
         let flux: f64 = op
             .cells
             .iter()
             .map(|&(i, j)| {
                 let u = lat.velocity(i, j);
-                (u[0] * op.inward[0] + u[1] * op.inward[1]) * to_phys * dx * h
+                (u[0] * op.inward[0] + u[1] * op.inward[1]) * units.to_phys * dx * depth_m
             })
             .sum();
-        match ports[opening_port[k]].kind {
+        match po.port.kind {
             PortKind::Inlet { .. } => inflow += flux,
             PortKind::Outlet => outflow -= flux,
         }
     }
+    (inflow, outflow)
+}
 
-    // Control-plane map: bilinear between cell centres (non-fluid cells are at rest), zero
-    // outside the canal.
-    let sp = settings.out_spacing_m;
-    let mnx = ((hi.x - lo.x) / sp).floor() as usize + 1;
-    let mny = ((hi.y - lo.y) / sp).floor() as usize + 1;
-    let origin = Vector2::new(
-        0.5 * (lo.x + hi.x) - 0.5 * (mnx - 1) as f64 * sp,
-        0.5 * (lo.y + hi.y) - 0.5 * (mny - 1) as f64 * sp,
-    );
-    let scale = to_phys * PLANE_FACTOR;
-    let mut velocity = Vec::with_capacity(mnx * mny);
-    for j in 0..mny {
-        for i in 0..mnx {
-            let p = origin + Vector2::new(i as f64, j as f64) * sp;
+/// The output map's nodes: `spacing_m` apart, centred on the view rectangle.
+struct MapGrid {
+    nx: usize,
+    ny: usize,
+    origin_m: Vector2<f64>,
+    spacing_m: f64,
+}
+
+impl MapGrid {
+    fn over(lo: Vector2<f64>, hi: Vector2<f64>, spacing_m: f64) -> Self {
+        let sp = spacing_m;
+        let nx = ((hi.x - lo.x) / sp).floor() as usize + 1;
+        let ny = ((hi.y - lo.y) / sp).floor() as usize + 1;
+        let origin_m = Vector2::new(
+            0.5 * (lo.x + hi.x) - 0.5 * (nx - 1) as f64 * sp,
+            0.5 * (lo.y + hi.y) - 0.5 * (ny - 1) as f64 * sp,
+        );
+        Self {
+            nx,
+            ny,
+            origin_m,
+            spacing_m,
+        }
+    }
+}
+
+/// Control-plane map: bilinear between cell centres (non-fluid cells are at rest), zero
+/// outside the canal and in the port tubes, scaled from the depth average to the control plane.
+fn sample_control_plane(
+    lat: &Lattice,
+    grid: &Grid,
+    mask: &CanalMask,
+    ports: &[Port],
+    out: &MapGrid,
+    units: &LatticeUnits,
+) -> FlowMap {
+    let dx = grid.dx;
+    let scale = units.to_phys * PLANE_FACTOR;
+    let mut velocity = Vec::with_capacity(out.nx * out.ny);
+    for j in 0..out.ny {
+        for i in 0..out.nx {
+            let p = out.origin_m + Vector2::new(i as f64, j as f64) * out.spacing_m;
             if !mask.contains(&p) || ports.iter().any(|port| port.in_tube(&p)) {
                 velocity.push(Vector2::zeros());
                 continue;
@@ -632,46 +824,14 @@ pub fn solve(
             velocity.push(v * scale);
         }
     }
-    let map = FlowMap {
-        nx: mnx,
-        ny: mny,
-        origin_m: origin,
-        spacing_m: sp,
+    FlowMap {
+        nx: out.nx,
+        ny: out.ny,
+        origin_m: out.origin_m,
+        spacing_m: out.spacing_m,
         velocity_mps: velocity,
         chamber_peak_mps: None,
-    };
-
-    let tube_area = std::f64::consts::PI * 0.25 * fieldmaps::phantom::INLET_DIAMETER_M.powi(2);
-    let tube_mean = 0.5 * condition.flow_m3_s / tube_area;
-    let mut stats = CfdStats {
-        condition: condition.clone(),
-        convergence,
-        lattice: (nx, ny),
-        fluid_cells: lat.fluid_cells(),
-        dx_m: dx,
-        dt_s: dt,
-        tau,
-        inlet_mean_mps: inlet_mean,
-        tube_mean_mps: tube_mean,
-        tube_reynolds: settings.density_kg_m3 * tube_mean * fieldmaps::phantom::INLET_DIAMETER_M
-            / condition.viscosity_pa_s,
-        inflow_m3_s: inflow,
-        outflow_m3_s: outflow,
-        peak_mps: 0.0,
-        peak_at_m: Vector2::zeros(),
-        chamber_peak_mps: 0.0,
-        chamber_peak_at_m: Vector2::zeros(),
-        disturbance_mean_ratio: 0.0,
-        recirculating_points: 0,
-        recirculating_fraction: 0.0,
-        recirculating_in_band: 0.0,
-        recirculating_outside_band: 0.0,
-        recirculating_y_m: (0.0, 0.0),
-        seconds: 0.0,
-    };
-    analyse(&map, mask, ports, &mut stats);
-    stats.seconds = started.elapsed().as_secs_f64();
-    Ok((map, stats))
+    }
 }
 
 /// Peak speeds, the high-disturbance band's mean speed, and recirculation found by tracing
@@ -875,31 +1035,8 @@ pub fn run(args: &CfdArgs) -> anyhow::Result<()> {
         Some(path) => CanalMask::load_png(path, &geometry)?,
         None => CanalMask::from_phantom(&phantom, &geometry)?,
     };
-    let mut did_something = false;
-    if let Some(path) = &args.write_mask {
-        mask.save_png(path)?;
-        println!(
-            "wrote canal mask {} ({} canal px)",
-            path.display(),
-            mask.canal_pixels()
-        );
-        did_something = true;
-    }
-    if args.validate {
-        let (_, text) = crate::validate::run_all()?;
-        print!("{text}");
-        did_something = true;
-    }
-    let conditions = match (args.all, args.flow_ml_min, args.viscosity_cp) {
-        (true, None, None) => Condition::paper(),
-        (false, Some(q), Some(mu)) => vec![Condition::new(q, mu)],
-        (false, None, None) => Vec::new(),
-        (true, _, _) => anyhow::bail!("--all cannot be combined with --flow-ml-min/--viscosity-cp"),
-        _ => anyhow::bail!("give both --flow-ml-min and --viscosity-cp (or --all)"),
-    };
-    if args.out.is_some() && conditions.len() != 1 {
-        anyhow::bail!("--out needs exactly one condition");
-    }
+    let did_something = write_mask_and_validate(args, &mask)?;
+    let conditions = selected_conditions(args)?;
     if conditions.is_empty() {
         if !did_something {
             anyhow::bail!("nothing to do: give --all, --flow-ml-min with --viscosity-cp, --validate or --write-mask");
@@ -921,7 +1058,145 @@ pub fn run(args: &CfdArgs) -> anyhow::Result<()> {
         Some(p) => format!("mask {}", p.display()),
         None => "parametric phantom (fieldmaps::phantom::Phantom::default_heart)".to_string(),
     };
+    let job = MapJob {
+        args,
+        mask: &mask,
+        ports: &ports,
+        settings: &settings,
+        source: &source,
+    };
+    let results = solve_in_parallel(conditions, args.threads, settings.max_steps, |c, bar| {
+        job.solve_and_write(c, bar)
+    })?;
+    let mut failed = false;
+    for (condition, result) in results {
+        match result {
+            Ok(stats) => println!("{}", stats.summary()),
+            Err(e) => {
+                failed = true;
+                eprintln!("{}: {e:#}", condition.name);
+            }
+        }
+    }
+    if failed {
+        anyhow::bail!("some conditions failed");
+    }
+    Ok(())
+}
 
+/// The side tasks of `fieldgen cfd`: `--write-mask` and `--validate`. Returns whether any ran.
+fn write_mask_and_validate(args: &CfdArgs, mask: &CanalMask) -> anyhow::Result<bool> {
+    let mut did_something = false;
+    if let Some(path) = &args.write_mask {
+        mask.save_png(path)?;
+        println!(
+            "wrote canal mask {} ({} canal px)",
+            path.display(),
+            mask.canal_pixels()
+        );
+        did_something = true;
+    }
+    if args.validate {
+        let (_, text) = crate::validate::run_all()?;
+        print!("{text}");
+        did_something = true;
+    }
+    Ok(did_something)
+}
+
+/// The conditions the arguments ask for (none when they name no condition).
+fn selected_conditions(args: &CfdArgs) -> anyhow::Result<Vec<Condition>> {
+    let conditions = match (args.all, args.flow_ml_min, args.viscosity_cp) {
+        (true, None, None) => Condition::paper(),
+        (false, Some(q), Some(mu)) => vec![Condition::new(q, mu)],
+        (false, None, None) => Vec::new(),
+        (true, _, _) => anyhow::bail!("--all cannot be combined with --flow-ml-min/--viscosity-cp"),
+        _ => anyhow::bail!("give both --flow-ml-min and --viscosity-cp (or --all)"),
+    };
+    if args.out.is_some() && conditions.len() != 1 {
+        anyhow::bail!("--out needs exactly one condition");
+    }
+    Ok(conditions)
+}
+
+/// What every condition's solve shares: the domain, the settings and where maps go.
+struct MapJob<'a> {
+    args: &'a CfdArgs,
+    mask: &'a CanalMask,
+    ports: &'a [Port],
+    settings: &'a CfdSettings,
+    /// The domain's description for the map header.
+    source: &'a str,
+}
+
+impl MapJob<'_> {
+    /// Solves `condition` and writes its map (and speed image with `--images`).
+    fn solve_and_write(
+        &self,
+        condition: &Condition,
+        bar: &indicatif::ProgressBar,
+    ) -> anyhow::Result<CfdStats> {
+        let (map, stats) = solve(
+            self.mask,
+            self.ports,
+            condition,
+            self.settings,
+            |steps, res| {
+                bar.set_position(steps as u64);
+                bar.set_message(format!("residual {res:.1e}"));
+            },
+        )?;
+        bar.finish_with_message(format!(
+            "residual {:.1e}, peak {:.1} mm/s",
+            stats.convergence.residual,
+            stats.chamber_peak_mps * 1e3
+        ));
+        let path = self.args.out.clone().unwrap_or_else(|| {
+            self.args
+                .out_dir
+                .join(format!("{}.flow.csv", condition.name))
+        });
+        std::fs::write(&path, self.map_header(condition, &stats) + &map.to_text())
+            .with_context(|| format!("writing {}", path.display()))?;
+        if self.args.images {
+            let png = path.with_extension("").with_extension("speed.png");
+            write_speed_png(&map, stats.peak_mps, &png)?;
+        }
+        Ok(stats)
+    }
+
+    /// The `# key = value` lines that head a generated map.
+    fn map_header(&self, condition: &Condition, stats: &CfdStats) -> String {
+        let (source, settings) = (self.source, self.settings);
+        format!(
+            "# generated by: fieldgen cfd (depth-averaged D2Q9 TRT lattice Boltzmann, see fieldmaps/flow/README_SECTION.md)\n\
+             # domain = {source}\n\
+             # flow_ml_min = {}\n# viscosity_cp = {}\n# density_kg_m3 = {}\n\
+             # effective_depth_mm = {}\n# control_plane_factor = {PLANE_FACTOR}\n\
+             # lattice_dx_mm = {:.4}\n# steps = {}\n# residual = {:.3e}\n\
+             # mass_imbalance = {:.3e}\n# peak_mps = {:.5}\n# chamber_peak_mps = {:.5}\n",
+            condition.flow_ml_min(),
+            condition.viscosity_cp(),
+            settings.density_kg_m3,
+            settings.depth_m * 1e3,
+            stats.dx_m * 1e3,
+            stats.convergence.steps,
+            stats.convergence.residual,
+            stats.mass_imbalance(),
+            stats.peak_mps,
+            stats.chamber_peak_mps,
+        )
+    }
+}
+
+/// Runs `solve_one` for every condition on up to `threads` threads, each with its own progress
+/// bar (`max_steps` long). Results come back in the order of `conditions`.
+fn solve_in_parallel(
+    conditions: Vec<Condition>,
+    threads: usize,
+    max_steps: usize,
+    solve_one: impl Fn(&Condition, &indicatif::ProgressBar) -> anyhow::Result<CfdStats> + Sync,
+) -> anyhow::Result<Vec<(Condition, anyhow::Result<CfdStats>)>> {
     let bars = indicatif::MultiProgress::new();
     let style = indicatif::ProgressStyle::with_template(
         "{prefix:>14} [{elapsed_precise}] {bar:30} {pos}/{len} steps {msg}",
@@ -929,7 +1204,7 @@ pub fn run(args: &CfdArgs) -> anyhow::Result<()> {
     let jobs: Vec<(Condition, indicatif::ProgressBar)> = conditions
         .into_iter()
         .map(|c| {
-            let bar = bars.add(indicatif::ProgressBar::new(settings.max_steps as u64));
+            let bar = bars.add(indicatif::ProgressBar::new(max_steps as u64));
             bar.set_style(style.clone());
             bar.set_prefix(c.name.clone());
             (c, bar)
@@ -938,51 +1213,13 @@ pub fn run(args: &CfdArgs) -> anyhow::Result<()> {
     let next = AtomicUsize::new(0);
     let results: Mutex<Vec<(usize, anyhow::Result<CfdStats>)>> = Mutex::new(Vec::new());
     std::thread::scope(|scope| {
-        for _ in 0..args.threads.clamp(1, jobs.len()) {
+        for _ in 0..threads.clamp(1, jobs.len()) {
             scope.spawn(|| loop {
                 let k = next.fetch_add(1, Ordering::SeqCst);
                 let Some((condition, bar)) = jobs.get(k) else {
                     break;
                 };
-                let outcome = (|| -> anyhow::Result<CfdStats> {
-                    let (map, stats) = solve(&mask, &ports, condition, &settings, |steps, res| {
-                        bar.set_position(steps as u64);
-                        bar.set_message(format!("residual {res:.1e}"));
-                    })?;
-                    bar.finish_with_message(format!(
-                        "residual {:.1e}, peak {:.1} mm/s",
-                        stats.convergence.residual,
-                        stats.chamber_peak_mps * 1e3
-                    ));
-                    let path = args.out.clone().unwrap_or_else(|| {
-                        args.out_dir.join(format!("{}.flow.csv", condition.name))
-                    });
-                    let header = format!(
-                        "# generated by: fieldgen cfd (depth-averaged D2Q9 TRT lattice Boltzmann, see fieldmaps/flow/README_SECTION.md)\n\
-                         # domain = {source}\n\
-                         # flow_ml_min = {}\n# viscosity_cp = {}\n# density_kg_m3 = {}\n\
-                         # effective_depth_mm = {}\n# control_plane_factor = {PLANE_FACTOR}\n\
-                         # lattice_dx_mm = {:.4}\n# steps = {}\n# residual = {:.3e}\n\
-                         # mass_imbalance = {:.3e}\n# peak_mps = {:.5}\n# chamber_peak_mps = {:.5}\n",
-                        condition.flow_ml_min(),
-                        condition.viscosity_cp(),
-                        settings.density_kg_m3,
-                        settings.depth_m * 1e3,
-                        stats.dx_m * 1e3,
-                        stats.convergence.steps,
-                        stats.convergence.residual,
-                        stats.mass_imbalance(),
-                        stats.peak_mps,
-                        stats.chamber_peak_mps,
-                    );
-                    std::fs::write(&path, header + &map.to_text())
-                        .with_context(|| format!("writing {}", path.display()))?;
-                    if args.images {
-                        let png = path.with_extension("").with_extension("speed.png");
-                        write_speed_png(&map, stats.peak_mps, &png)?;
-                    }
-                    Ok(stats)
-                })();
+                let outcome = solve_one(condition, bar);
                 if outcome.is_err() {
                     bar.abandon_with_message("failed");
                 }
@@ -996,18 +1233,9 @@ pub fn run(args: &CfdArgs) -> anyhow::Result<()> {
         .into_inner()
         .map_err(|_| anyhow::anyhow!("worker panicked"))?;
     results.sort_by_key(|r| r.0);
-    let mut failed = false;
-    for (k, r) in results {
-        match r {
-            Ok(stats) => println!("{}", stats.summary()),
-            Err(e) => {
-                failed = true;
-                eprintln!("{}: {e:#}", jobs[k].0.name);
-            }
-        }
-    }
-    if failed {
-        anyhow::bail!("some conditions failed");
-    }
-    Ok(())
+    let mut conditions: Vec<Option<Condition>> = jobs.into_iter().map(|(c, _)| Some(c)).collect();
+    Ok(results
+        .into_iter()
+        .filter_map(|(k, r)| conditions[k].take().map(|c| (c, r)))
+        .collect())
 }

@@ -3,7 +3,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
-use millinav_unet::dataset::Split;
+use millinav_roi::dataset::Split;
 use millinav_vision::classical::{CapsuleSize, ClassicalLocalizer};
 use millinav_vision::eval::{evaluate_classical, evaluate_unet, table};
 use millinav_vision::unet::{find_onnxruntime, UnetLocalizer};
@@ -36,7 +36,7 @@ fn main() -> anyhow::Result<()> {
         .context("empty split")?;
     let runtime = find_onnxruntime(args.onnxruntime.as_deref())?;
     let mut unet = UnetLocalizer::load(&args.model, &runtime, size.length_m * 1e3, mm_per_px)?;
-    let expected = size.length_m * 1e3 / mm_per_px / millinav_unet::roi::DOWNSAMPLE as f64;
+    let expected = size.length_m * 1e3 / mm_per_px / millinav_roi::roi::DOWNSAMPLE as f64;
     // Warm-up so the first inference's allocations do not count as latency.
     for i in 0..split.len().min(5) {
         let _ = unet.infer(split.image(i));

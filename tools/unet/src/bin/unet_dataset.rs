@@ -10,8 +10,8 @@ use fieldmaps::phantom::{ImageGeometry, Phantom};
 use fieldmaps::rig::RobotParams;
 use indicatif::{ProgressBar, ProgressStyle};
 use millinav_plant::render::Camera;
-use millinav_unet::dataset::{Label, Split};
-use millinav_unet::roi::{extract_mask, extract_rgb, Crop, CROP_PX};
+use millinav_roi::dataset::{Label, Split};
+use millinav_roi::roi::{extract_mask, extract_rgb, Crop, CROP_PX};
 use nalgebra::Vector2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -180,7 +180,7 @@ fn export_split(
     let cams: Vec<Camera> = (0..cameras)
         .map(|_| {
             let noise = rng.random_range(1.0..8.0);
-            let cam = Camera::new(phantom, geometry.clone(), &mut rng, noise);
+            let cam = Camera::new(phantom, geometry, &mut rng, noise);
             bar.inc(1);
             cam
         })

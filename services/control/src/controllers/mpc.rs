@@ -25,7 +25,7 @@ use fieldmaps::rig::{CoilLimits, RobotParams};
 use nalgebra::{DMatrix, DVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::controllers::{ControlInput, ControlTerms, Controller, NominalModel};
+use super::interface::{ControlInput, ControlTerms, Controller, NominalModel};
 
 /// `[control.mpc]` gains. Units: Q and P in 1/m², R in 1/N² (J is dimensionless).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -112,19 +112,6 @@ impl MpcGains {
         g
     }
 
-    /// The MPC gains of a `[control]` table, with the force bound resolved from its current
-    /// limits and orientation field when the MPC is the selected controller.
-    pub fn for_config(config: &crate::ControlConfig) -> Self {
-        if config.controller != crate::controllers::ControllerKind::Mpc {
-            return config.mpc.clone();
-        }
-        let heading = config.field_heading_deg.to_radians();
-        let field = Vector2::new(heading.cos(), heading.sin()) * (config.field_magnitude_mt * 1e-3);
-        config
-            .mpc
-            .resolved(&config.limits, &field, config.omega0_n_per_t)
-    }
-
     /// These gains with `max_force_n` filled in from the rig's current limits when unset.
     pub fn resolved(&self, limits: &CoilLimits, field_t: &Vector2<f64>, omega0: f64) -> Self {
         let mut g = self.sanitized();
@@ -137,6 +124,11 @@ impl MpcGains {
 
 /// Fallback force bound when the estimate is degenerate (the paper's 0.37 mN at 0.43 T/m).
 pub const FALLBACK_MAX_FORCE_N: f64 = 3.7e-4;
+
+/// Directions over which `estimate_max_force_n` takes its minimum.
+const FORCE_BOUND_DIRECTIONS: u32 = 16;
+/// Bisection steps on the force scale α ∈ [0, 1]: 60 halvings reach the f64 resolution of α.
+const FORCE_BOUND_BISECTION_STEPS: u32 = 60;
 
 /// Largest force magnitude the 8 planar coils can produce in *every* direction while also
 /// holding the orientation field `field_t`, within `limits` (per-coil current and total power),
@@ -182,8 +174,8 @@ pub fn estimate_max_force_n(limits: &CoilLimits, field_t: &Vector2<f64>, omega0:
         if !feasible(&i_field) {
             return FALLBACK_MAX_FORCE_N;
         }
-        for k in 0..16 {
-            let th = f64::from(k) * std::f64::consts::TAU / 16.0;
+        for k in 0..FORCE_BOUND_DIRECTIONS {
+            let th = f64::from(k) * std::f64::consts::TAU / f64::from(FORCE_BOUND_DIRECTIONS);
             let unit = DVector::from_vec(vec![th.cos(), th.sin(), 0.0, 0.0]);
             let Ok(i_unit) = allocate_pinv(&a, &unit) else {
                 continue;
@@ -193,7 +185,7 @@ pub fn estimate_max_force_n(limits: &CoilLimits, field_t: &Vector2<f64>, omega0:
                 best = best.min(hi);
                 continue;
             }
-            for _ in 0..60 {
+            for _ in 0..FORCE_BOUND_BISECTION_STEPS {
                 let mid = 0.5 * (lo + hi);
                 if feasible(&(&i_field + &i_unit * mid)) {
                     lo = mid;

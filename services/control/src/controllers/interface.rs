@@ -1,0 +1,47 @@
+//! What every controller shares: its input, the terms it logs, the trait, and the nominal model.
+
+use nalgebra::Vector2;
+
+use crate::reference::ReferenceSample;
+
+/// What a controller knows at one step.
+#[derive(Debug, Clone, Copy)]
+pub struct ControlInput {
+    /// Time since the previous step (from capture timestamps, never the wall clock).
+    pub dt_s: f64,
+    pub position_m: Vector2<f64>,
+    /// Estimated robot velocity (filtered finite differences of poses).
+    pub velocity_mps: Vector2<f64>,
+    pub reference: ReferenceSample,
+    /// Steady-map flow at the robot (flow service).
+    pub flow_mps: Vector2<f64>,
+    /// In the high-disturbance zone of the flow map.
+    pub high_disturbance: bool,
+}
+
+/// Internal signals worth logging.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ControlTerms {
+    pub error_m: Vector2<f64>,
+    pub error_rate_mps: Vector2<f64>,
+    pub sliding_surface: Vector2<f64>,
+    pub disturbance_estimate_n: Vector2<f64>,
+}
+
+pub trait Controller: Send {
+    fn name(&self) -> &'static str;
+    /// Numeric id carried in `CoilCommand::controller_id`.
+    fn id(&self) -> u32;
+    /// Desired planar force (N) for this step.
+    fn update(&mut self, input: &ControlInput) -> (Vector2<f64>, ControlTerms);
+    /// Forget integrators and filters (after a hold or a restart of the loop).
+    fn reset(&mut self);
+}
+
+/// The nominal model every controller may use: mass and the paper's linear drag.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NominalModel {
+    pub mass_kg: f64,
+    /// c_t of paper Eq. 7 for the scenario's viscosity.
+    pub linear_drag_n_s_per_m: f64,
+}
