@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 use fieldmaps::coils::COIL_COUNT;
 use millinav_coilbus::link::SerialLink;
 use millinav_coilbus::protocol::{amps_to_ma, CoilValues, Message};
+use millinav_kit::runlog::{self, TeensyEventRow};
 use millinav_plant::teensy::{EmulatedTeensy, LinkFault};
 
 fn command(frame_seq: u64, amps: f64) -> Message {
@@ -80,18 +81,9 @@ fn serial_link_reconnects_when_the_port_comes_back() {
 
 /// Rows of the board's event log: (monotonic_ns, max |current| A, event).
 fn board_events(path: &std::path::Path) -> Vec<(u64, f64, String)> {
-    std::fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .skip(1)
-        .map(|line| {
-            let f: Vec<&str> = line.split(',').collect();
-            (
-                f[0].parse().unwrap(),
-                f[3].parse().unwrap(),
-                f[4].to_owned(),
-            )
-        })
+    let rows: Vec<TeensyEventRow> = runlog::read_rows(path).unwrap();
+    rows.into_iter()
+        .map(|row| (row.monotonic_ns, row.max_abs_current_a, row.event))
         .collect()
 }
 

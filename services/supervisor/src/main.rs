@@ -63,7 +63,7 @@ fn main() -> ExitCode {
                 || error.downcast_ref::<ScenarioError>().is_some()
                 || error.downcast_ref::<LaunchError>().is_some();
             if config_error {
-                ExitCode::from(EXIT_CONFIG as u8)
+                ExitCode::from(EXIT_CONFIG)
             } else {
                 ExitCode::FAILURE
             }

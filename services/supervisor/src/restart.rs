@@ -10,7 +10,7 @@ use shm_schemas::ServiceId;
 use crate::launch::RestartPolicy;
 
 /// Exit status of a child that rejected its configuration (`EX_CONFIG` of sysexits.h).
-pub const EXIT_CONFIG: i32 = 78;
+pub use millinav_kit::EXIT_CONFIG;
 
 /// What a child's exit means for the set.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -24,7 +24,7 @@ pub enum ExitKind {
 }
 
 pub fn classify_exit(service: ServiceId, status: ExitStatus) -> ExitKind {
-    if status.code() == Some(EXIT_CONFIG) {
+    if status.code() == Some(i32::from(EXIT_CONFIG)) {
         ExitKind::ConfigError
     } else if service == ServiceId::Plant && status.success() {
         ExitKind::RunComplete
@@ -136,7 +136,7 @@ mod tests {
         );
         for service in [ServiceId::Plant, ServiceId::Flow, ServiceId::Coilbus] {
             assert_eq!(
-                classify_exit(service, exited_with(EXIT_CONFIG)),
+                classify_exit(service, exited_with(i32::from(EXIT_CONFIG))),
                 ExitKind::ConfigError
             );
         }
