@@ -338,7 +338,7 @@ pub struct TeensyEventRow {
     #[serde(serialize_with = "fixed6")]
     pub max_abs_current_a: f64,
     /// `command`, `safe_zero`, `watchdog_zero`, `unplugged`, `replugged`, `hang`,
-    /// `hw_watchdog_reset`, `rebooted`.
+    /// `hw_watchdog_reset`, `rebooted`, `rejected_coil_count`.
     pub event: String,
 }
 

@@ -58,7 +58,8 @@ fn main() -> ExitCode {
     match run_cli(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(error) => {
-            eprintln!("Error: {error:?}");
+            // The message and its causes, without a backtrace: this is what a user reads.
+            eprintln!("Error: {error:#}");
             let config_error = error.downcast_ref::<FailFast>().is_some()
                 || error.downcast_ref::<ScenarioError>().is_some()
                 || error.downcast_ref::<LaunchError>().is_some();
