@@ -25,6 +25,7 @@ pub mod phantom;
 pub mod physics;
 pub mod rig;
 pub mod rigfile;
+pub mod walls;
 
 /// Environment variable naming the repository root that committed data (coil maps, flow maps,
 /// the UNet model, scenarios) is read from.

@@ -220,34 +220,12 @@ impl CanalMask {
     /// centre (0 on wall pixels); row-major. Felzenszwalb–Huttenlocher separable transform,
     /// O(pixels). Pixels outside the image count as canal (an open port is not a wall).
     pub fn clearance_map(&self) -> Vec<f64> {
-        let (w, h) = (self.width() as usize, self.height() as usize);
-        let big = 1e20;
-        // Squared distance in px² to the nearest wall pixel.
-        let mut d2: Vec<f64> = self
-            .canal
-            .iter()
-            .map(|&c| if c { big } else { 0.0 })
-            .collect();
-        let mut line = Vec::new();
-        let mut out = Vec::new();
-        for c in 0..w {
-            line.clear();
-            line.extend((0..h).map(|r| d2[r * w + c]));
-            edt_1d(&line, &mut out);
-            for r in 0..h {
-                d2[r * w + c] = out[r];
-            }
-        }
-        for r in 0..h {
-            line.clear();
-            line.extend_from_slice(&d2[r * w..(r + 1) * w]);
-            edt_1d(&line, &mut out);
-            d2[r * w..(r + 1) * w].copy_from_slice(&out);
-        }
+        let walls: Vec<bool> = self.canal.iter().map(|&c| !c).collect();
         let px_m = self.geometry.mm_per_px * 1e-3;
-        d2.iter()
+        squared_distance_px(self.width() as usize, self.height() as usize, &walls)
+            .iter()
             .map(|&v| {
-                if v >= big {
+                if v >= UNREACHED {
                     f64::INFINITY
                 } else {
                     v.sqrt() * px_m
@@ -255,6 +233,43 @@ impl CanalMask {
             })
             .collect()
     }
+
+    /// Canal flags, row-major (true = canal).
+    pub fn canal_flags(&self) -> &[bool] {
+        &self.canal
+    }
+}
+
+/// What [`squared_distance_px`] returns where no source pixel exists.
+pub(crate) const UNREACHED: f64 = 1e20;
+
+/// Exact squared Euclidean distance (px²) from every pixel centre of a `w` × `h` grid to the
+/// nearest pixel whose `sources` flag is set (0 on those); [`UNREACHED`] when there is none.
+/// Felzenszwalb–Huttenlocher separable transform, O(pixels).
+pub(crate) fn squared_distance_px(w: usize, h: usize, sources: &[bool]) -> Vec<f64> {
+    let mut d2: Vec<f64> = sources
+        .iter()
+        .map(|&s| if s { 0.0 } else { UNREACHED })
+        .collect();
+    let mut line = Vec::new();
+    let mut out = Vec::new();
+    for c in 0..w {
+        line.clear();
+        line.extend((0..h).map(|r| d2[r * w + c]));
+        edt_1d(&line, &mut out);
+        for r in 0..h {
+            d2[r * w + c] = out[r].min(UNREACHED);
+        }
+    }
+    for r in 0..h {
+        line.clear();
+        line.extend_from_slice(&d2[r * w..(r + 1) * w]);
+        edt_1d(&line, &mut out);
+        for (dst, &v) in d2[r * w..(r + 1) * w].iter_mut().zip(&out) {
+            *dst = v.min(UNREACHED);
+        }
+    }
+    d2
 }
 
 /// 1D squared distance transform of a sampled function (Felzenszwalb & Huttenlocher 2012).

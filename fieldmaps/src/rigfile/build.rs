@@ -11,7 +11,7 @@ use super::key_path::key_path_at;
 use super::schema;
 use super::{
     CameraPixelFormat, FieldModel, FlowCondition, Rig, RigCamera, RigCoil, RigCoilField,
-    RigFileError, RigPhantom, Zone, ZoneKind, MAX_FILAMENTS, MAX_RIG_COILS,
+    RigFileError, RigPhantom, Route, Zone, ZoneKind, MAX_FILAMENTS, MAX_RIG_COILS,
 };
 use super::{RIG_FORMAT, RIG_VERSION};
 use crate::coils::{Coil, CoilSystem, Winding};
@@ -20,6 +20,7 @@ use crate::flowmap::FlowMap;
 use crate::mask::{CanalMask, MaskError};
 use crate::phantom::{ImageGeometry, Inlet, Outlet};
 use crate::rig::{RigError, RobotParams};
+use crate::walls::WallField;
 
 /// Where errors point.
 pub(super) struct Ctx<'a> {
@@ -137,8 +138,17 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
     }
     let coils = build_coils(ctx, &file.coils)?;
     let em = &file.electromagnet;
-    let field_model = parse_field_model(ctx, &em.field_model)?;
-    let coil_field = build_field(ctx, &field_model, &coils)?;
+    let field_model = parse_field_model(ctx, "electromagnet.field_model", &em.field_model)?;
+    let coil_field = build_field(ctx, "electromagnet.field_model", &field_model, &coils)?;
+    let (twin_field_model, twin_coil_field) = match &em.twin_field_model {
+        None => (field_model.clone(), coil_field.clone()),
+        Some(text) => {
+            let field = "electromagnet.twin_field_model";
+            let model = parse_field_model(ctx, field, text)?;
+            let built = build_field(ctx, field, &model, &coils)?;
+            (model, built)
+        }
+    };
     require_positive(ctx, "electromagnet.max_total_power_w", em.max_total_power_w)?;
     let allocation_coils = build_allocation(ctx, &em.allocation_coils, &coils)?;
     let camera = build_camera(ctx, &file.camera)?;
@@ -151,6 +161,8 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
         coils,
         field_model,
         coil_field,
+        twin_field_model,
+        twin_coil_field,
         max_total_power_w: em.max_total_power_w,
         allocation_coils,
         camera,
@@ -251,8 +263,7 @@ fn build_coils(
     Ok(coils)
 }
 
-fn parse_field_model(ctx: &Ctx<'_>, text: &str) -> Result<FieldModel, RigFileError> {
-    let field = "electromagnet.field_model";
+fn parse_field_model(ctx: &Ctx<'_>, field: &str, text: &str) -> Result<FieldModel, RigFileError> {
     match text.trim() {
         "analytic" => Ok(FieldModel::Analytic),
         other => match other.strip_prefix("maps:") {
@@ -269,6 +280,7 @@ fn parse_field_model(ctx: &Ctx<'_>, text: &str) -> Result<FieldModel, RigFileErr
 
 fn build_field(
     ctx: &Ctx<'_>,
+    field: &str,
     model: &FieldModel,
     coils: &[RigCoil],
 ) -> Result<RigCoilField, RigFileError> {
@@ -284,7 +296,7 @@ fn build_field(
                     };
                     return Err(ctx.err(
                         format!("coils[{i}].{missing}"),
-                        "required by the analytic field model",
+                        format!("required by the analytic field model ({field})"),
                     ));
                 };
                 built.push(Coil::from_winding(
@@ -298,7 +310,6 @@ fn build_field(
             Ok(RigCoilField::Analytic(CoilSystem { coils: built }))
         }
         FieldModel::Maps(dir) => {
-            let field = "electromagnet.field_model";
             let maps = CoilFieldMaps::load(dir).map_err(|e| ctx.err(field, e.to_string()))?;
             let names: Vec<&str> = maps.coils().iter().map(|c| c.name.as_str()).collect();
             if names.len() != coils.len() {
@@ -565,13 +576,43 @@ fn build_phantom(
 
     let zones = build_zones(ctx, &p.zones, &mask)?;
     let flow_conditions = build_flow(ctx, &p.flow)?;
+    let route = match &p.route {
+        None => None,
+        Some(r) => {
+            let on_canal = |key: &str, v: [f64; 2]| {
+                let at = format!("phantom.route.{key}");
+                if !finite(&v) {
+                    return Err(ctx.err(at, format!("must be finite, got {}", fmt_vec(&v))));
+                }
+                let p = mm2(v);
+                if !mask.contains(&p) {
+                    return Err(ctx.err(
+                        at,
+                        format!(
+                            "{} mm is not on a canal pixel of the mask {}",
+                            fmt_vec(&v),
+                            mask_path.display()
+                        ),
+                    ));
+                }
+                Ok(p)
+            };
+            Some(Route {
+                start_m: on_canal("start_mm", r.start_mm)?,
+                end_m: on_canal("end_mm", r.end_mm)?,
+            })
+        }
+    };
+    let walls = WallField::from_mask(&mask);
     Ok(RigPhantom {
         mask_path,
         mask,
+        walls,
         inlets,
         outlets,
         zones,
         flow_conditions,
+        route,
     })
 }
 

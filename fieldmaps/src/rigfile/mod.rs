@@ -22,6 +22,7 @@ use crate::fieldmap::CoilFieldMaps;
 use crate::mask::CanalMask;
 use crate::phantom::{ImageGeometry, Inlet, Outlet};
 use crate::rig::{CoilLimits, RobotParams};
+use crate::walls::WallField;
 
 pub use zone::{Zone, ZoneKind};
 
@@ -152,10 +153,21 @@ pub struct FlowCondition {
 pub struct RigPhantom {
     pub mask_path: PathBuf,
     pub mask: CanalMask,
+    /// Signed distance to the canal wall, from the mask (plant contact, clearance checks).
+    pub walls: WallField,
     pub inlets: Vec<Inlet>,
     pub outlets: Vec<Outlet>,
     pub zones: Vec<Zone>,
     pub flow_conditions: Vec<FlowCondition>,
+    /// Default start and goal (`[phantom.route]`), if the file gives them.
+    pub route: Option<Route>,
+}
+
+/// A default start and goal on the canal, m.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Route {
+    pub start_m: Vector2<f64>,
+    pub end_m: Vector2<f64>,
 }
 
 impl RigPhantom {
@@ -183,8 +195,12 @@ pub struct Rig {
     pub name: String,
     pub description: String,
     pub coils: Vec<RigCoil>,
+    /// The model control plans with (`electromagnet.field_model`).
     pub field_model: FieldModel,
     pub coil_field: RigCoilField,
+    /// The model the twin's physics uses (`electromagnet.twin_field_model`, else `field_model`).
+    pub twin_field_model: FieldModel,
+    pub twin_coil_field: RigCoilField,
     /// Total ohmic power over all coils, W.
     pub max_total_power_w: f64,
     /// Indices (into `coils`) the allocation may drive, in the file's order.

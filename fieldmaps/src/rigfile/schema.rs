@@ -27,6 +27,9 @@ pub(crate) struct RigFile {
 #[serde(deny_unknown_fields)]
 pub(crate) struct ElectromagnetSection {
     pub field_model: String,
+    /// The plant's (truth) field model; defaults to `field_model`.
+    #[serde(default)]
+    pub twin_field_model: Option<String>,
     pub max_total_power_w: f64,
     pub allocation_coils: Vec<String>,
 }
@@ -84,6 +87,16 @@ pub(crate) struct PhantomSection {
     pub zones: Vec<ZoneSection>,
     #[serde(default)]
     pub flow: Vec<FlowSection>,
+    #[serde(default)]
+    pub route: Option<RouteSection>,
+}
+
+/// The default start and goal of a run on this phantom (planner, scenarios without a path).
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct RouteSection {
+    pub start_mm: [f64; 2],
+    pub end_mm: [f64; 2],
 }
 
 #[derive(Debug, Deserialize)]
