@@ -234,6 +234,25 @@ impl CanalMask {
             .collect()
     }
 
+    /// The mask seen through another image geometry (e.g. the camera's): one byte per pixel of
+    /// `geometry`, row-major, `MASK_CANAL` where the pixel centre falls on canal, else
+    /// `MASK_WALL`. Identity when `geometry` is the mask's own.
+    pub fn resampled(&self, geometry: &ImageGeometry) -> Vec<u8> {
+        if geometry == &self.geometry {
+            return self.to_bytes();
+        }
+        let (w, h) = (geometry.width_px as usize, geometry.height_px as usize);
+        let mut out = vec![MASK_WALL; w * h];
+        for (row, line) in out.chunks_exact_mut(w.max(1)).enumerate() {
+            for (col, px) in line.iter_mut().enumerate() {
+                if self.contains(&geometry.px_to_world(col as f64, row as f64)) {
+                    *px = MASK_CANAL;
+                }
+            }
+        }
+        out
+    }
+
     /// Canal flags, row-major (true = canal).
     pub fn canal_flags(&self) -> &[bool] {
         &self.canal

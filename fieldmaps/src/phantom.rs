@@ -69,13 +69,7 @@ impl Primitive {
                 for seg in points_m.windows(2) {
                     let (a, b) = (seg[0], seg[1]);
                     let ab = b - a;
-                    let len2 = ab.norm_squared();
-                    let t = if len2 > 0.0 {
-                        ((p - a).dot(&ab) / len2).clamp(0.0, 1.0)
-                    } else {
-                        0.0
-                    };
-                    let d = p - (a + ab * t);
+                    let d = p - crate::rigfile::closest_point_on_segment(&a, &b, p);
                     let dist = d.norm() - radius_m;
                     if dist < best.0 {
                         // On the centreline the gradient is undefined; pick the left normal.

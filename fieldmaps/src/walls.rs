@@ -89,6 +89,11 @@ impl WallField {
         g.try_normalize(1e-15).unwrap_or_else(Vector2::x)
     }
 
+    /// Whether `p` is in the fluid (signed distance < 0).
+    pub fn contains(&self, p: &Vector2<f64>) -> bool {
+        self.signed_distance(p) < 0.0
+    }
+
     /// Distance to the wall from a point in the canal (≤ 0 outside it), m.
     pub fn clearance(&self, p: &Vector2<f64>) -> f64 {
         -self.signed_distance(p)

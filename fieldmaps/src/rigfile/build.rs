@@ -678,6 +678,7 @@ fn build_zones(
                 schema::ZoneKindName::Recirculation => ZoneKind::Recirculation,
             },
             polygon_m: z.polygon_mm.iter().map(|v| mm2(*v)).collect(),
+            center_m: z.center_mm.map(mm2),
         };
         if !covers_canal(&zone, mask) {
             return Err(ctx.err(
@@ -687,6 +688,18 @@ fn build_zones(
                     z.name
                 ),
             ));
+        }
+        if let (Some(raw), Some(center)) = (z.center_mm, zone.center_m) {
+            if !finite(&raw) || !zone.contains(&center) || !mask.contains(&center) {
+                return Err(ctx.err(
+                    at("center_mm"),
+                    format!(
+                        "{} mm must be a finite point inside zone {:?} and on a canal pixel",
+                        fmt_vec(&raw),
+                        z.name
+                    ),
+                ));
+            }
         }
         zones.push(zone);
     }

@@ -24,6 +24,7 @@ use crate::phantom::{ImageGeometry, Inlet, Outlet};
 use crate::rig::{CoilLimits, RobotParams};
 use crate::walls::WallField;
 
+pub(crate) use zone::closest_point_on_segment;
 pub use zone::{Zone, ZoneKind};
 
 /// Most coils a rig may have. Must equal `shm_schemas::MAX_COILS` (the contract's coil arrays);
@@ -179,6 +180,34 @@ impl RigPhantom {
     /// Zones containing `p` (m).
     pub fn zones_at(&self, p: Vector2<f64>) -> impl Iterator<Item = &Zone> + '_ {
         self.zones.iter().filter(move |z| z.contains(&p))
+    }
+
+    /// Where the twin centres the recirculation vortex of `zone`: its `center_mm` when the file
+    /// gives one, else the centroid of the canal pixels inside it (the zone's own centroid when
+    /// it covers none).
+    pub fn zone_center(&self, zone: &Zone) -> Vector2<f64> {
+        if let Some(c) = zone.center_m {
+            return c;
+        }
+        let g = self.mask.geometry();
+        let (mut sum, mut count) = (Vector2::zeros(), 0usize);
+        for row in 0..g.height_px {
+            for col in 0..g.width_px {
+                if !self.mask.is_canal_px(i64::from(col), i64::from(row)) {
+                    continue;
+                }
+                let p = g.px_to_world(f64::from(col), f64::from(row));
+                if zone.contains(&p) {
+                    sum += p;
+                    count += 1;
+                }
+            }
+        }
+        if count > 0 {
+            sum / count as f64
+        } else {
+            zone.polygon_m.iter().sum::<Vector2<f64>>() / zone.polygon_m.len().max(1) as f64
+        }
     }
 
     /// Whether `p` (m) lies in any zone of `kind`.

@@ -131,6 +131,8 @@ pub(crate) struct ZoneSection {
     pub name: String,
     pub kind: ZoneKindName,
     pub polygon_mm: Vec<[f64; 2]>,
+    #[serde(default)]
+    pub center_mm: Option<[f64; 2]>,
 }
 
 #[derive(Debug, Deserialize)]

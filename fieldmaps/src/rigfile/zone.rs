@@ -28,6 +28,9 @@ pub struct Zone {
     pub name: String,
     pub kind: ZoneKind,
     pub polygon_m: Vec<Vector2<f64>>,
+    /// Centre of the twin's recirculation vortex in this zone (`center_mm`, optional); see
+    /// [`super::RigPhantom::zone_center`].
+    pub center_m: Option<Vector2<f64>>,
 }
 
 /// Distance (m) within which a point counts as on an edge: far below a camera pixel, far above
@@ -39,6 +42,23 @@ impl Zone {
     /// outside.
     pub fn contains(&self, p: &Vector2<f64>) -> bool {
         polygon_contains(&self.polygon_m, p)
+    }
+
+    /// Distance (m) from `p` to the polygon: 0 inside or on it, +∞ for non-finite `p`.
+    pub fn distance_outside(&self, p: &Vector2<f64>) -> f64 {
+        if !(p.x.is_finite() && p.y.is_finite()) {
+            return f64::INFINITY;
+        }
+        if self.contains(p) {
+            return 0.0;
+        }
+        let n = self.polygon_m.len();
+        (0..n)
+            .map(|i| {
+                let (a, b) = (&self.polygon_m[i], &self.polygon_m[(i + 1) % n]);
+                (p - closest_point_on_segment(a, b, p)).norm()
+            })
+            .fold(f64::INFINITY, f64::min)
     }
 
     /// Axis-aligned bounding box (min, max), m.
@@ -57,7 +77,12 @@ pub(crate) fn bounds(polygon: &[Vector2<f64>]) -> (Vector2<f64>, Vector2<f64>) {
     (lo, hi)
 }
 
-fn on_segment(a: &Vector2<f64>, b: &Vector2<f64>, p: &Vector2<f64>) -> bool {
+/// The point of segment a–b closest to `p` (`a` for a degenerate segment).
+pub(crate) fn closest_point_on_segment(
+    a: &Vector2<f64>,
+    b: &Vector2<f64>,
+    p: &Vector2<f64>,
+) -> Vector2<f64> {
     let ab = b - a;
     let len2 = ab.norm_squared();
     let t = if len2 > 0.0 {
@@ -65,7 +90,11 @@ fn on_segment(a: &Vector2<f64>, b: &Vector2<f64>, p: &Vector2<f64>) -> bool {
     } else {
         0.0
     };
-    (p - (a + ab * t)).norm() <= ON_EDGE_M
+    a + ab * t
+}
+
+fn on_segment(a: &Vector2<f64>, b: &Vector2<f64>, p: &Vector2<f64>) -> bool {
+    (p - closest_point_on_segment(a, b, p)).norm() <= ON_EDGE_M
 }
 
 pub(crate) fn polygon_contains(polygon: &[Vector2<f64>], p: &Vector2<f64>) -> bool {
@@ -98,7 +127,20 @@ mod tests {
             name: "z".into(),
             kind: ZoneKind::Recirculation,
             polygon_m: points.iter().map(|&(x, y)| Vector2::new(x, y)).collect(),
+            center_m: None,
         }
+    }
+
+    #[test]
+    fn distance_outside_is_zero_inside_and_to_the_nearest_edge_outside() {
+        let z = zone(&[(-1.0, -1.0), (2.0, -1.0), (2.0, 3.0), (-1.0, 3.0)]);
+        assert_eq!(z.distance_outside(&Vector2::new(0.0, 0.0)), 0.0);
+        assert!((z.distance_outside(&Vector2::new(0.0, 4.5)) - 1.5).abs() < 1e-12);
+        assert!((z.distance_outside(&Vector2::new(5.0, 7.0)) - 5.0).abs() < 1e-12);
+        assert_eq!(
+            z.distance_outside(&Vector2::new(f64::NAN, 0.0)),
+            f64::INFINITY
+        );
     }
 
     #[test]

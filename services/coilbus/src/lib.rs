@@ -41,9 +41,13 @@ pub struct CoilbusConfig {
     /// Serial device of the Teensy, or `auto` for the plant's emulated Teensy in the run dir.
     pub port: String,
     pub baud: u32,
-    pub limits: CurrentLimits,
-    /// Coils this bus drives (at most `MAX_COILS`); a command for another count is rejected.
-    pub coil_count: usize,
+    /// Lowers every coil's current limit (A) below the rig's for this run; never raises it.
+    pub max_current_a: Option<f64>,
+    /// Lowers the rig's total power limit (W) for this run; never raises it.
+    pub max_total_power_w: Option<f64>,
+    /// Coils this bus drives (at most `MAX_COILS`; default: the rig's count); a command for
+    /// another count is rejected.
+    pub coil_count: Option<usize>,
     /// Zero the coils when no command was accepted for this long.
     pub command_deadline_ms: u64,
     /// Period of the housekeeping tick (reconnect, telemetry, safe-state keepalive).
@@ -55,23 +59,24 @@ impl Default for CoilbusConfig {
         Self {
             port: "auto".into(),
             baud: 115_200,
-            limits: CurrentLimits::default(),
-            coil_count: fieldmaps::coils::COIL_COUNT,
+            max_current_a: None,
+            max_total_power_w: None,
+            coil_count: None,
             command_deadline_ms: deadlines::COMMAND.as_millis() as u64,
             tick_ms: 20,
         }
     }
 }
 
-impl CoilbusConfig {
-    /// Checks what serde cannot: the coil count fits a frame.
-    pub fn validate(&self) -> Result<(), CommandError> {
-        if self.coil_count == 0 || self.coil_count > MAX_COILS {
-            return Err(CommandError::BadConfiguredCount(self.coil_count));
-        }
-        Ok(())
-    }
+/// What coilbus runs with: its table and the rig's limits and coil count, resolved.
+#[derive(Debug, Clone)]
+pub struct CoilbusSetup {
+    pub config: CoilbusConfig,
+    pub limits: CurrentLimits,
+    pub coil_count: usize,
+}
 
+impl CoilbusConfig {
     pub fn port_path(&self, run_dir: &std::path::Path) -> PathBuf {
         if self.port == "auto" {
             run_dir.join(EMULATED_PORT_LINK)
@@ -303,7 +308,7 @@ fn log_output(rec: &millinav_kit::rerun::RecordingStream, out: &Output, bus: &Co
 /// Parses and validates the `[coilbus]` table. The serial port is not checked here: the
 /// emulated one appears when the plant starts, and a real one may be plugged in later (the
 /// link reconnects). Every failure is a configuration error naming the scenario and the field.
-pub fn prepare(scenario: &Scenario) -> Result<CoilbusConfig, ConfigError> {
+pub fn prepare(scenario: &Scenario) -> Result<CoilbusSetup, ConfigError> {
     let config: CoilbusConfig = scenario.section("coilbus")?;
     let field = |name: &str| format!("scenario {}: [coilbus] {name}", scenario.path.display());
     let positive = |name: &str, value: u64| {
@@ -323,23 +328,35 @@ pub fn prepare(scenario: &Scenario) -> Result<CoilbusConfig, ConfigError> {
             field("port")
         )));
     }
-    let limits = &config.limits;
     for (name, value) in [
-        ("limits.max_current_a", limits.max_current_a),
-        ("limits.max_total_power_w", limits.max_total_power_w),
-        ("limits.coil_resistance_ohm", limits.coil_resistance_ohm),
+        ("max_current_a", config.max_current_a),
+        ("max_total_power_w", config.max_total_power_w),
     ] {
-        if !(value.is_finite() && value > 0.0) {
-            return Err(ConfigError::new(format!(
-                "{} must be > 0, got {value}",
-                field(name)
-            )));
+        if let Some(value) = value {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(ConfigError::new(format!(
+                    "{} must be > 0, got {value}",
+                    field(name)
+                )));
+            }
         }
     }
-    config
-        .validate()
-        .map_err(|e| ConfigError::new(format!("{}: {e}", field("coil_count"))))?;
-    Ok(config)
+    let rig = scenario.rig()?;
+    let coil_count = config.coil_count.unwrap_or(rig.coils.len());
+    if coil_count == 0 || coil_count > MAX_COILS {
+        return Err(ConfigError::new(format!(
+            "{}: {}",
+            field("coil_count"),
+            CommandError::BadConfiguredCount(coil_count)
+        )));
+    }
+    let limits =
+        CurrentLimits::from_rig(&rig).capped(config.max_current_a, config.max_total_power_w);
+    Ok(CoilbusSetup {
+        config,
+        limits,
+        coil_count,
+    })
 }
 
 /// Validates the `[coilbus]` table (what `--check` runs).
@@ -350,7 +367,12 @@ pub fn check_config(scenario: &Scenario) -> Result<(), ConfigError> {
 /// The coilbus process: on every wake (a command, its deadline, or the tick) it services the
 /// serial link, applies the newest fresh command or keeps the coils at zero, and publishes its
 /// status. On the way out it zeroes the coils.
-pub fn run(rt: &mut Runtime, _scenario: &Scenario, config: CoilbusConfig) -> anyhow::Result<()> {
+pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CoilbusSetup) -> anyhow::Result<()> {
+    let CoilbusSetup {
+        config,
+        limits,
+        coil_count,
+    } = setup;
     let port_path = config.port_path(&rt.env.run_dir);
     let commands = Inbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
     let status_out = Outbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
@@ -358,9 +380,9 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, config: CoilbusConfig) -> any
     let mut link_log = RunLogWriter::<LinkEventRow>::in_run_dir(&rt.env.run_dir)
         .context("opening the link log")?;
     let mut bus = CoilBus::new(
-        config.limits.clone(),
+        limits,
         Duration::from_millis(config.command_deadline_ms),
-        config.coil_count,
+        coil_count,
     );
     let run_start = Instant::now();
 
@@ -550,12 +572,14 @@ mod tests {
         assert!(out
             .currents_a
             .iter()
-            .all(|c| c.abs() <= limits.max_current_a));
+            .zip(&limits.max_current_a)
+            .all(|(c, max)| c.abs() <= *max));
         assert_eq!(out.currents_a[3], 0.0);
         let power: f64 = out
             .currents_a
             .iter()
-            .map(|c| c * c * limits.coil_resistance_ohm)
+            .zip(&limits.coil_resistance_ohm)
+            .map(|(c, r)| c * c * r)
             .sum();
         assert!(power <= limits.max_total_power_w * (1.0 + 1e-9));
         assert_eq!(bus.status.clamp_events, 1);
@@ -585,7 +609,7 @@ mod tests {
             error.contains("[coilbus]") && error.contains("prot"),
             "{error}"
         );
-        let error = check_config(&scenario_with("[coilbus.limits]\nmax_curent_a = 1.0"))
+        let error = check_config(&scenario_with("max_curent_a = 1.0"))
             .unwrap_err()
             .to_string();
         assert!(error.contains("max_curent_a"), "{error}");
@@ -593,10 +617,10 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(error.contains("[coilbus] tick_ms"), "{error}");
-        let error = check_config(&scenario_with("[coilbus.limits]\nmax_current_a = nan"))
+        let error = check_config(&scenario_with("max_current_a = nan"))
             .unwrap_err()
             .to_string();
-        assert!(error.contains("[coilbus] limits.max_current_a"), "{error}");
+        assert!(error.contains("[coilbus] max_current_a"), "{error}");
     }
 
     #[test]
@@ -664,15 +688,28 @@ mod tests {
 
     #[test]
     fn configured_coil_count_is_validated() {
-        let mut config = CoilbusConfig::default();
-        assert!(config.validate().is_ok());
         for bad in [0, MAX_COILS + 1] {
-            config.coil_count = bad;
-            assert_eq!(
-                config.validate(),
-                Err(CommandError::BadConfiguredCount(bad))
-            );
+            let error = check_config(&scenario_with(&format!("coil_count = {bad}")))
+                .unwrap_err()
+                .to_string();
+            assert!(error.contains("[coilbus] coil_count"), "{error}");
         }
+    }
+
+    #[test]
+    fn limits_come_from_the_rig_and_the_scenario_only_lowers_them() {
+        let setup = prepare(&scenario_with("")).unwrap();
+        let rig = fieldmaps::rigfile::Rig::load_paper().unwrap();
+        assert_eq!(setup.coil_count, rig.coils.len());
+        assert_eq!(setup.limits, CurrentLimits::from_rig(&rig));
+        let capped = prepare(&scenario_with(
+            "max_current_a = 2.0\nmax_total_power_w = 1e6",
+        ))
+        .unwrap();
+        assert!(capped.limits.max_current_a[..rig.coils.len()]
+            .iter()
+            .all(|&m| m == 2.0));
+        assert_eq!(capped.limits.max_total_power_w, rig.max_total_power_w);
     }
 
     /// on_command followed by a successful write.

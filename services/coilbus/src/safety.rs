@@ -1,28 +1,63 @@
 //! coilbus's own safety rules: current limits and staleness. They hold whatever the controller
 //! asks for, so they are deliberately independent of the control code.
 
-use serde::{Deserialize, Serialize};
+use fieldmaps::rigfile::Rig;
 use shm_schemas::{CoilCommand, FrameStamp, MAX_COILS};
 
-/// Hard limits of the drivers and supplies.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+/// Hard limits of the drivers and supplies, per coil (the rig file's `[[coils]]` and
+/// `[electromagnet] max_total_power_w`, optionally lowered by the scenario).
+#[derive(Debug, Clone, PartialEq)]
 pub struct CurrentLimits {
-    /// Per coil, either sign.
-    pub max_current_a: f64,
+    /// Per coil, either sign (entries past the rig's coils are unused).
+    pub max_current_a: [f64; MAX_COILS],
+    /// Per coil, for the total power.
+    pub coil_resistance_ohm: [f64; MAX_COILS],
     /// Sum of I²R over all coils.
     pub max_total_power_w: f64,
-    pub coil_resistance_ohm: f64,
+}
+
+impl CurrentLimits {
+    /// The same rating for every coil.
+    pub fn uniform(max_current_a: f64, coil_resistance_ohm: f64, max_total_power_w: f64) -> Self {
+        Self {
+            max_current_a: [max_current_a; MAX_COILS],
+            coil_resistance_ohm: [coil_resistance_ohm; MAX_COILS],
+            max_total_power_w,
+        }
+    }
+
+    /// The rig's per-coil ratings and total power.
+    pub fn from_rig(rig: &Rig) -> Self {
+        let mut limits = Self::uniform(0.0, 0.0, rig.max_total_power_w);
+        for (i, coil) in rig.coils.iter().take(MAX_COILS).enumerate() {
+            limits.max_current_a[i] = coil.max_current_a;
+            limits.coil_resistance_ohm[i] = coil.resistance_ohm;
+        }
+        limits
+    }
+
+    /// These limits, lowered (never raised) to `max_current_a` per coil and
+    /// `max_total_power_w` in all where given.
+    pub fn capped(mut self, max_current_a: Option<f64>, max_total_power_w: Option<f64>) -> Self {
+        if let Some(cap) = max_current_a {
+            self.max_current_a.iter_mut().for_each(|m| *m = m.min(cap));
+        }
+        if let Some(cap) = max_total_power_w {
+            self.max_total_power_w = self.max_total_power_w.min(cap);
+        }
+        self
+    }
 }
 
 impl Default for CurrentLimits {
+    /// The paper rig's rating ([`fieldmaps::rig::CoilLimits`]) for every coil.
     fn default() -> Self {
         let rig = fieldmaps::rig::CoilLimits::default();
-        Self {
-            max_current_a: rig.max_current_a,
-            max_total_power_w: rig.max_total_power_w,
-            coil_resistance_ohm: rig.coil_resistance_ohm,
-        }
+        Self::uniform(
+            rig.max_current_a,
+            rig.coil_resistance_ohm,
+            rig.max_total_power_w,
+        )
     }
 }
 
@@ -32,8 +67,8 @@ impl Default for CurrentLimits {
 pub fn clamp_currents(requested: &[f64], limits: &CurrentLimits) -> ([f64; MAX_COILS], bool) {
     let mut changed = false;
     let mut out = [0.0; MAX_COILS];
-    let max = limits.max_current_a.abs();
-    for (o, r) in out.iter_mut().zip(requested) {
+    for ((o, r), max) in out.iter_mut().zip(requested).zip(&limits.max_current_a) {
+        let max = max.abs();
         *o = if r.is_finite() {
             r.clamp(-max, max)
         } else {
@@ -41,7 +76,11 @@ pub fn clamp_currents(requested: &[f64], limits: &CurrentLimits) -> ([f64; MAX_C
         };
         changed |= *o != *r;
     }
-    let power: f64 = out.iter().map(|c| c * c * limits.coil_resistance_ohm).sum();
+    let power: f64 = out
+        .iter()
+        .zip(&limits.coil_resistance_ohm)
+        .map(|(c, r)| c * c * r)
+        .sum();
     if power > limits.max_total_power_w && power > 0.0 {
         let scale = (limits.max_total_power_w.max(0.0) / power).sqrt();
         out.iter_mut().for_each(|c| *c *= scale);

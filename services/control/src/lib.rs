@@ -8,14 +8,14 @@ pub mod reference;
 
 use std::time::{Duration, Instant};
 
+use std::sync::Arc;
+
 use fieldmaps::allocation::{
-    actuation_matrix, allocate_constrained, allocate_limited, ConstrainedSettings, ALL_COILS,
-    DEFAULT_PLANAR_COILS,
+    actuation_matrix_from, allocate_constrained, allocate_limited, ConstrainedSettings,
 };
-use fieldmaps::coils::CoilSystem;
-use fieldmaps::phantom::Phantom;
 use fieldmaps::physics;
 use fieldmaps::rig::{CoilLimits, RobotParams};
+use fieldmaps::rigfile::Rig;
 use millinav_kit::contract::ContractViolations;
 use millinav_kit::ports::{Inbox, Outbox};
 use millinav_kit::recording;
@@ -29,8 +29,8 @@ use shm_schemas::{
 };
 
 use crate::controllers::{
-    ControlInput, ControlTerms, Controller, ControllerKind, MpcGains, NominalModel, PidGains,
-    SmcGains,
+    ControlInput, ControlTerms, Controller, ControllerKind, ForceSite, MpcGains, NominalModel,
+    PidGains, SmcGains,
 };
 use crate::reference::Reference;
 
@@ -59,7 +59,9 @@ pub struct ControlConfig {
     pub max_speed_mps: f64,
     /// Time constant of the velocity estimate's low-pass filter.
     pub velocity_filter_ms: f64,
-    pub limits: CoilLimits,
+    /// Current and power limits the allocation respects; default: the rig's
+    /// (`Rig::coil_limits`, conservative when the coils' ratings differ).
+    pub limits: Option<CoilLimits>,
     /// Allocate with the constrained QP (per-coil and total limits, best effort when the
     /// command is infeasible) instead of the paper's pseudo-inverse followed by scaling.
     pub constrained_allocation: bool,
@@ -68,8 +70,9 @@ pub struct ControlConfig {
     /// heading, hence the direction of every force) is kept and force is given up first;
     /// with equal weights the fit trades the 1 mT field for force and the robot tumbles.
     pub field_row_weight: f64,
-    /// Allocate over all 12 coils instead of the paper's 8 (small + large of each unit): the
-    /// idle mid coils add force authority where the flow pushes hardest.
+    /// Allocate over all the rig's coils instead of its `allocation_coils` (the paper's rig:
+    /// all 12 instead of 8; the idle mid coils add force authority where the flow pushes
+    /// hardest).
     pub use_all_coils: bool,
 }
 
@@ -86,7 +89,7 @@ impl Default for ControlConfig {
             hold_timeout_ms: 300.0,
             max_speed_mps: 0.3,
             velocity_filter_ms: 30.0,
-            limits: CoilLimits::default(),
+            limits: None,
             constrained_allocation: false,
             field_row_weight: 1e4,
             use_all_coils: false,
@@ -94,19 +97,41 @@ impl Default for ControlConfig {
     }
 }
 
-// The rig control allocates for must fit the contract's coil arrays.
-const _: () = assert!(fieldmaps::coils::COIL_COUNT <= MAX_COILS);
+// The rig's coils fit the contract's coil arrays.
+const _: () = assert!(fieldmaps::rigfile::MAX_RIG_COILS == MAX_COILS);
 
 impl ControlConfig {
-    /// The MPC gains of this table, with the force bound resolved from its current limits and
-    /// orientation field when the MPC is the selected controller.
-    pub fn mpc_gains(&self) -> MpcGains {
+    /// The current limits on `rig`: this table's, else the rig's.
+    pub fn limits_on(&self, rig: &Rig) -> CoilLimits {
+        self.limits.unwrap_or_else(|| rig.coil_limits())
+    }
+
+    /// The coils the allocation drives on `rig`.
+    pub fn coil_ids(&self, rig: &Rig) -> Vec<usize> {
+        if self.use_all_coils {
+            (0..rig.coils.len()).collect()
+        } else {
+            rig.allocation_coils.clone()
+        }
+    }
+
+    /// The MPC gains of this table, with the force bound resolved on `rig` along `path_m`
+    /// from the current limits and orientation field when the MPC is the selected controller.
+    pub fn mpc_gains(&self, rig: &Rig, path_m: &[Vector2<f64>]) -> MpcGains {
         if self.controller != ControllerKind::Mpc {
             return self.mpc.clone();
         }
         let heading = self.field_heading_deg.to_radians();
         let field = Vector2::new(heading.cos(), heading.sin()) * (self.field_magnitude_mt * 1e-3);
-        self.mpc.resolved(&self.limits, &field, self.omega0_n_per_t)
+        let coil_ids = self.coil_ids(rig);
+        let site = ForceSite {
+            coils: &rig.coil_field,
+            coil_ids: &coil_ids,
+            magnet_moment_am2: rig.robot.magnet_moment_am2,
+            points_m: path_m,
+        };
+        self.mpc
+            .resolved(&site, &self.limits_on(rig), &field, self.omega0_n_per_t)
     }
 }
 
@@ -126,8 +151,10 @@ pub struct ControlLoop {
     pub config: ControlConfig,
     pub reference: Reference,
     controller: Box<dyn Controller>,
-    coils: CoilSystem,
-    phantom: Phantom,
+    /// The rig: coil model (control's, never the twin's), canal mask, robot.
+    rig: Arc<Rig>,
+    coil_ids: Vec<usize>,
+    limits: CoilLimits,
     robot: RobotParams,
     incarnation: u64,
     last_good: Option<(u64, Vector2<f64>)>,
@@ -143,8 +170,9 @@ impl ControlLoop {
         reference: Reference,
         viscosity_pa_s: f64,
         incarnation: u64,
+        rig: Arc<Rig>,
     ) -> Self {
-        let robot = RobotParams::default();
+        let robot = rig.robot.clone();
         let model = NominalModel {
             mass_kg: robot.mass_kg,
             linear_drag_n_s_per_m: physics::translational_damping(
@@ -153,7 +181,9 @@ impl ControlLoop {
                 robot.diameter_m / 2.0,
             ),
         };
-        let mpc = config.mpc_gains();
+        let mpc = config.mpc_gains(&rig, reference.waypoints());
+        let coil_ids = config.coil_ids(&rig);
+        let limits = config.limits_on(&rig);
         let controller = config
             .controller
             .build(&config.pid, &config.smc, &mpc, model);
@@ -161,8 +191,9 @@ impl ControlLoop {
             config,
             reference,
             controller,
-            coils: CoilSystem::paper_rig(),
-            phantom: Phantom::default_heart(),
+            coil_ids,
+            limits,
+            rig,
             robot,
             incarnation,
             last_good: None,
@@ -174,7 +205,7 @@ impl ControlLoop {
 
     /// Coils the loop allocates for: the `active_coils` of every command.
     pub fn coil_count(&self) -> usize {
-        self.coils.len()
+        self.rig.coils.len()
     }
 
     /// A command answering `pose` with no currents yet (all coils of the rig at zero).
@@ -183,8 +214,7 @@ impl ControlLoop {
             stamp: pose.stamp,
             control_incarnation: self.incarnation,
             controller_id: self.controller.id(),
-            // The rig's count (the paper rig's fits MAX_COILS, asserted below); a count that did
-            // not fit would make coilbus reject the command as malformed.
+            // The rig's count (a rig file holds at most MAX_RIG_COILS = MAX_COILS coils).
             active_coils: self.coil_count() as u32,
             ..Default::default()
         }
@@ -210,7 +240,7 @@ impl ControlLoop {
             return Some("pose holds non-finite numbers");
         }
         let p = Vector2::new(pose.position_m[0], pose.position_m[1]);
-        if !self.phantom.contains(&p) {
+        if !self.rig.phantom.contains(&p) {
             return Some("pose outside the canal");
         }
         if let Some((t_prev, p_prev)) = self.last_good {
@@ -233,12 +263,8 @@ impl ControlLoop {
         let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
         let p3 = Vector3::new(position.x, position.y, 0.0);
         let omega0 = self.config.omega0_n_per_t;
-        let coil_ids: &[usize] = if self.config.use_all_coils {
-            &ALL_COILS
-        } else {
-            &DEFAULT_PLANAR_COILS
-        };
-        let a = actuation_matrix(&self.coils, &p3, &moment, coil_ids, omega0);
+        let coil_ids = &self.coil_ids;
+        let a = actuation_matrix_from(&self.rig.coil_field, &p3, &moment, coil_ids, omega0);
         let b = self.desired_field();
         let c = DVector::from_vec(vec![force.x, force.y, omega0 * b.x, omega0 * b.y]);
         let mut currents = [0.0; MAX_COILS];
@@ -248,9 +274,9 @@ impl ControlLoop {
                 row_weights: Some(DVector::from_vec(vec![1.0, 1.0, w, w])),
                 ..ConstrainedSettings::default()
             };
-            allocate_constrained(&a, &c, &self.config.limits, &settings).map(|a| a.currents_a)
+            allocate_constrained(&a, &c, &self.limits, &settings).map(|a| a.currents_a)
         } else {
-            allocate_limited(&a, &c, &self.config.limits).map(|a| a.currents_a)
+            allocate_limited(&a, &c, &self.limits).map(|a| a.currents_a)
         };
         if let Ok(allocated) = allocated {
             for (k, &id) in coil_ids.iter().enumerate() {
@@ -361,12 +387,20 @@ impl ControlLoop {
 pub struct ControlSetup {
     pub config: ControlConfig,
     pub reference: Reference,
+    /// The rig the scenario names.
+    pub rig: Arc<Rig>,
 }
 
 impl ControlSetup {
     /// The loop for a fluid of `viscosity_pa_s`, answering as control incarnation `incarnation`.
     pub fn into_loop(self, viscosity_pa_s: f64, incarnation: u64) -> ControlLoop {
-        ControlLoop::new(self.config, self.reference, viscosity_pa_s, incarnation)
+        ControlLoop::new(
+            self.config,
+            self.reference,
+            viscosity_pa_s,
+            incarnation,
+            self.rig,
+        )
     }
 }
 
@@ -400,7 +434,10 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
             config.field_heading_deg
         )));
     }
-    config.limits.validate().config_context(field("limits"))?;
+    if let Some(limits) = &config.limits {
+        limits.validate().config_context(field("limits"))?;
+    }
+    let rig = scenario.rig()?;
     let reference = Reference::new(
         &scenario.waypoints_m(),
         scenario.trajectory.speed_mm_s * 1e-3,
@@ -410,7 +447,26 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
         "scenario {}: [trajectory]",
         scenario.path.display()
     ))?;
-    Ok(ControlSetup { config, reference })
+    let outside: Vec<String> = reference
+        .waypoints()
+        .iter()
+        .filter(|p| !rig.phantom.contains(p))
+        .map(|p| format!("({:.2}, {:.2})", p.x * 1e3, p.y * 1e3))
+        .collect();
+    if !outside.is_empty() {
+        return Err(ConfigError::new(format!(
+            "scenario {}: [trajectory] waypoints_mm {} lie outside the canal of rig {} (mask {})",
+            scenario.path.display(),
+            outside.join(", "),
+            rig.path.display(),
+            rig.phantom.mask_path.display()
+        )));
+    }
+    Ok(ControlSetup {
+        config,
+        reference,
+        rig,
+    })
 }
 
 /// Validates the `[control]` table and the trajectory (what `--check` runs).
@@ -576,7 +632,8 @@ mod tests {
 
     fn control_loop() -> ControlLoop {
         let reference = Reference::new(&[[-0.018, 0.012], [-0.012, 0.008]], 1e-3, 0.0).unwrap();
-        ControlLoop::new(ControlConfig::default(), reference, 0.02, 0)
+        let rig = Arc::new(Rig::load_paper().unwrap());
+        ControlLoop::new(ControlConfig::default(), reference, 0.02, 0, rig)
     }
 
     fn pose(seq: u64, t_s: f64, x: f64, y: f64) -> Pose {

@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use fieldmaps::flowmap::FlowMap;
+use fieldmaps::rigfile::{Zone, ZoneKind};
 use millinav_kit::contract::ContractViolations;
 use millinav_kit::ports::{Inbox, Outbox};
 use millinav_kit::recording;
@@ -14,22 +15,12 @@ use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
 use shm_schemas::{deadlines, services, zone, Flag, FlowEstimate, Pose};
 
-/// `[flow]` section of a scenario.
+/// `[flow]` section of a scenario. The zones come from the rig (`[[phantom.zones]]`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct FlowConfig {
     /// Steady flow map (relative to the scenario file); none means static fluid.
     pub map: Option<PathBuf>,
-    /// Band of y (mm) where the inlet streams converge at the narrowing (paper: 0 to −10 mm).
-    pub high_disturbance_y_mm: [f64; 2],
-    /// x extent (mm) of the high-disturbance zone: the band stops short of the outflow
-    /// channel (x ≈ 22–36 mm), which crosses the same y band.
-    pub high_disturbance_x_mm: [f64; 2],
-    /// Band of y (mm) of the recirculation zone (paper: 10 to −5 mm).
-    pub recirculation_y_mm: [f64; 2],
-    /// x extent (mm) of the recirculation zone (right atrium / valve side, not the outflow
-    /// channel).
-    pub recirculation_x_mm: [f64; 2],
     /// Spacing of the arrows logged once to the recording (mm).
     pub arrow_spacing_mm: f64,
 }
@@ -38,10 +29,6 @@ impl Default for FlowConfig {
     fn default() -> Self {
         Self {
             map: None,
-            high_disturbance_y_mm: [-10.0, 0.0],
-            recirculation_y_mm: [-5.0, 10.0],
-            high_disturbance_x_mm: [-46.0, 20.0],
-            recirculation_x_mm: [-46.0, 20.0],
             arrow_spacing_mm: 4.0,
         }
     }
@@ -51,11 +38,13 @@ impl Default for FlowConfig {
 pub struct FlowEstimator {
     pub map: FlowMap,
     pub config: FlowConfig,
+    /// The rig's named zones (high disturbance, recirculation).
+    pub zones: Vec<Zone>,
 }
 
 impl FlowEstimator {
-    pub fn new(map: FlowMap, config: FlowConfig) -> Self {
-        Self { map, config }
+    pub fn new(map: FlowMap, config: FlowConfig, zones: Vec<Zone>) -> Self {
+        Self { map, config, zones }
     }
 
     pub fn estimate(&self, pose: &Pose) -> FlowEstimate {
@@ -70,30 +59,18 @@ impl FlowEstimator {
         }
         let p = Vector2::new(pose.position_m[0], pose.position_m[1]);
         let v = self.map.sample(&p);
-        let (x_mm, y_mm) = (p.x * 1e3, p.y * 1e3);
-        let between =
-            |v: f64, band: [f64; 2]| v >= band[0].min(band[1]) && v <= band[0].max(band[1]);
-        let within = |ys: [f64; 2], xs: [f64; 2]| between(y_mm, ys) && between(x_mm, xs);
         let moving = self.map.peak_speed() > 0.0;
         let mut flags = 0;
         if !self.map.covers(&p) {
             flags |= zone::OUTSIDE_MAP;
         }
-        if moving
-            && within(
-                self.config.high_disturbance_y_mm,
-                self.config.high_disturbance_x_mm,
-            )
-        {
-            flags |= zone::HIGH_DISTURBANCE;
-        }
-        if moving
-            && within(
-                self.config.recirculation_y_mm,
-                self.config.recirculation_x_mm,
-            )
-        {
-            flags |= zone::RECIRCULATION;
+        if moving {
+            for z in self.zones.iter().filter(|z| z.contains(&p)) {
+                flags |= match z.kind {
+                    ZoneKind::HighDisturbance => zone::HIGH_DISTURBANCE,
+                    ZoneKind::Recirculation => zone::RECIRCULATION,
+                };
+            }
         }
         estimate.velocity_mps = [v.x, v.y];
         estimate.speed_mps = v.norm();
@@ -136,19 +113,6 @@ impl FlowEstimator {
 pub fn prepare(scenario: &Scenario) -> Result<FlowEstimator, ConfigError> {
     let config: FlowConfig = scenario.section("flow")?;
     let field = |name: &str| format!("scenario {}: [flow] {name}", scenario.path.display());
-    for (name, band) in [
-        ("high_disturbance_y_mm", config.high_disturbance_y_mm),
-        ("high_disturbance_x_mm", config.high_disturbance_x_mm),
-        ("recirculation_y_mm", config.recirculation_y_mm),
-        ("recirculation_x_mm", config.recirculation_x_mm),
-    ] {
-        if band.iter().any(|v| !v.is_finite()) {
-            return Err(ConfigError::new(format!(
-                "{} = {band:?} must hold finite numbers",
-                field(name)
-            )));
-        }
-    }
     if !(config.arrow_spacing_mm.is_finite() && config.arrow_spacing_mm > 0.0) {
         return Err(ConfigError::new(format!(
             "{} must be > 0, got {}",
@@ -160,7 +124,8 @@ pub fn prepare(scenario: &Scenario) -> Result<FlowEstimator, ConfigError> {
         None => FlowMap::zero(),
         Some(path) => FlowMap::load(&scenario.resolve(path)).config_context(field("map"))?,
     };
-    Ok(FlowEstimator::new(map, config))
+    let rig = scenario.rig()?;
+    Ok(FlowEstimator::new(map, config, rig.phantom.zones.clone()))
 }
 
 /// Validates the `[flow]` table and the flow map it names (what `--check` runs).
@@ -269,7 +234,7 @@ mod tests {
 
     #[test]
     fn invalid_pose_gets_invalid_estimate() {
-        let est = FlowEstimator::new(FlowMap::zero(), FlowConfig::default());
+        let est = FlowEstimator::new(FlowMap::zero(), FlowConfig::default(), Vec::new());
         let pose = Pose {
             valid: Flag::TRUE,
             position_m: [f64::NAN, 0.0],
@@ -299,7 +264,8 @@ mod tests {
         map.velocity_mps
             .iter_mut()
             .for_each(|v| *v = Vector2::new(0.01, 0.0));
-        let est = FlowEstimator::new(map, FlowConfig::default());
+        let rig = fieldmaps::rigfile::Rig::load_paper().unwrap();
+        let est = FlowEstimator::new(map, FlowConfig::default(), rig.phantom.zones.clone());
         let flags = |x_mm: f64, y_mm: f64| {
             est.estimate(&Pose {
                 valid: Flag::TRUE,

@@ -11,7 +11,7 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
-use shm_schemas::{deadlines, services, FrameHeader, Heartbeat, ServiceId, FRAME_BYTES};
+use shm_schemas::{deadlines, services, FrameHeader, Heartbeat, ServiceId};
 
 use crate::service_loop::{Attachable, Connects};
 use crate::{iox, KitError};
@@ -226,10 +226,12 @@ fn open_frame_service(
 }
 
 impl FrameOutbox {
-    pub fn new(node: &Node<ipc::Service>) -> Result<Self, KitError> {
+    /// A publisher for frames of up to `max_frame_bytes` pixel bytes (the rig camera's
+    /// width × height × channels; `shm_schemas::FRAME_BYTES` for the paper's camera).
+    pub fn new(node: &Node<ipc::Service>, max_frame_bytes: usize) -> Result<Self, KitError> {
         let publisher = open_frame_service(node)?
             .publisher_builder()
-            .initial_max_slice_len(FRAME_BYTES)
+            .initial_max_slice_len(max_frame_bytes.max(1))
             .create()
             .map_err(iox(services::FRAME))?;
         let notifier = open_event(node, &services::event_service_of(services::FRAME))?

@@ -2,10 +2,15 @@
 //! carries one table per service (`[plant]`, `[vision]`, `[flow]`, `[control]`, `[coilbus]`)
 //! that the service parses into its own config type.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
+
+use crate::config::{ConfigContext, ConfigError};
+use fieldmaps::rigfile::Rig;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ScenarioError {
@@ -216,6 +221,25 @@ impl Scenario {
             return from_root;
         }
         self.resolve(rig)
+    }
+
+    /// The scenario's rig ([`Self::rig_path`]), loaded and validated. Cached per path for the
+    /// life of the process, so in-process runs (experiments, tests) load each rig once.
+    pub fn rig(&self) -> Result<Arc<Rig>, ConfigError> {
+        type Cache = Mutex<HashMap<PathBuf, Arc<Rig>>>;
+        static CACHE: OnceLock<Cache> = OnceLock::new();
+        let path = self.rig_path();
+        let cache = CACHE.get_or_init(Default::default);
+        if let Some(rig) = cache.lock().ok().and_then(|c| c.get(&path).cloned()) {
+            return Ok(rig);
+        }
+        let rig = Rig::load(&path)
+            .map(Arc::new)
+            .config_context(format!("scenario {}: [run] rig", self.path.display()))?;
+        if let Ok(mut c) = cache.lock() {
+            c.insert(path, rig.clone());
+        }
+        Ok(rig)
     }
 
     /// Resolves a path written in the scenario relative to the scenario file's directory.

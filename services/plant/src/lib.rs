@@ -13,10 +13,9 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use fieldmaps::coils::COIL_COUNT;
 use fieldmaps::flowmap::FlowMap;
-use fieldmaps::phantom::{ImageGeometry, Phantom};
-use fieldmaps::rig::{FluidParams, RobotParams};
+use fieldmaps::rig::FluidParams;
+use fieldmaps::rigfile::{CameraPixelFormat, Rig, MAX_RIG_COILS};
 use millinav_kit::ports::{FrameOutbox, Outbox};
 use millinav_kit::recording;
 use millinav_kit::runlog::{ContactRow, RunLogRow, RunLogWriter, TeensyEventRow, TruthRow};
@@ -102,41 +101,31 @@ impl FlowMapChoice {
     }
 }
 
-/// The committed coil field maps (fieldmaps/coils), loaded once per process and shared.
-pub fn coil_maps() -> anyhow::Result<std::sync::Arc<fieldmaps::fieldmap::CoilFieldMaps>> {
-    static MAPS: std::sync::OnceLock<
-        Result<std::sync::Arc<fieldmaps::fieldmap::CoilFieldMaps>, String>,
-    > = std::sync::OnceLock::new();
-    MAPS.get_or_init(|| {
-        fieldmaps::fieldmap::CoilFieldMaps::load_default()
-            .map(std::sync::Arc::new)
-            .map_err(|e| e.to_string())
-    })
-    .clone()
-    .map_err(|e| anyhow::anyhow!("coil field maps: {e}"))
-}
-
 /// Builds the twin's model for a scenario (shared with in-process experiment runs).
 pub fn build_model(scenario: &Scenario, config: &PlantConfig) -> anyhow::Result<PlantModel> {
-    Ok(load_model(scenario, config)?)
+    let rig = scenario.rig()?;
+    Ok(load_model(scenario, &rig, config)?)
 }
 
-/// The model and the files it is made of: the coil field maps and the steady flow map.
-fn load_model(scenario: &Scenario, config: &PlantConfig) -> Result<PlantModel, ConfigError> {
+/// The model from the rig (truth coil field, robot, walls) and the steady flow map.
+fn load_model(
+    scenario: &Scenario,
+    rig: &Rig,
+    config: &PlantConfig,
+) -> Result<PlantModel, ConfigError> {
     let fluid = FluidParams {
         viscosity_pa_s: scenario.viscosity_pa_s(),
         density_kg_m3: scenario.fluid.density_kg_m3,
     };
     let flow: FlowMapChoice = scenario.section("flow")?;
-    let coils = coil_maps().config_context("the coil field maps of fieldmaps/coils")?;
     let steady_flow = flow
         .load(scenario)
         .config_context(format!("scenario {}: [flow] map", scenario.path.display()))?;
     Ok(PlantModel::new(
-        coils,
-        RobotParams::default(),
+        rig.twin_coil_field.clone(),
+        rig.robot.clone(),
         &fluid,
-        Phantom::default_heart(),
+        &rig.phantom,
         steady_flow,
         config.physics.clone(),
         scenario.run.seed,
@@ -148,6 +137,8 @@ fn load_model(scenario: &Scenario, config: &PlantConfig) -> Result<PlantModel, C
 pub struct PlantSetup {
     pub config: PlantConfig,
     pub model: PlantModel,
+    /// The rig the scenario names (camera, phantom).
+    pub rig: std::sync::Arc<Rig>,
 }
 
 /// Parses and validates the `[plant]` table and loads the model's files. Every failure is a
@@ -177,8 +168,17 @@ pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
             )));
         }
     }
-    let model = load_model(scenario, &config)?;
-    Ok(PlantSetup { config, model })
+    let rig = scenario.rig()?;
+    if rig.camera.pixel_format != CameraPixelFormat::Rgb8 {
+        return Err(ConfigError::new(format!(
+            "{}: camera.pixel_format: the twin renders rgb8 frames only, got {:?} \
+             (gray8 is for a real camera)",
+            rig.path.display(),
+            rig.camera.pixel_format
+        )));
+    }
+    let model = load_model(scenario, &rig, &config)?;
+    Ok(PlantSetup { config, model, rig })
 }
 
 /// Validates the `[plant]` table and loads the files the model needs (what `--check` runs).
@@ -196,26 +196,19 @@ pub fn initial_state(scenario: &Scenario, config: &PlantConfig, model: &PlantMod
     )
 }
 
-// The twin's coils must fit the contract's coil arrays.
-const _: () = assert!(COIL_COUNT <= MAX_COILS);
-
-/// The twin's coil currents in a contract coil array (the rest zero).
-fn coil_array(currents_a: &[f64; COIL_COUNT]) -> [f64; MAX_COILS] {
-    let mut out = [0.0; MAX_COILS];
-    out[..COIL_COUNT].copy_from_slice(currents_a);
-    out
-}
+// The twin's coil arrays are the contract's.
+const _: () = assert!(MAX_RIG_COILS == MAX_COILS);
 
 /// The board's channel currents as the twin's coil currents (missing channels drive nothing).
-fn twin_currents(board_a: &[f64]) -> [f64; COIL_COUNT] {
-    let mut out = [0.0; COIL_COUNT];
+fn twin_currents(board_a: &[f64]) -> [f64; MAX_RIG_COILS] {
+    let mut out = [0.0; MAX_RIG_COILS];
     for (twin, board) in out.iter_mut().zip(board_a) {
         *twin = *board;
     }
     out
 }
 
-fn truth_of(state: &PlantState, frame_seq: u64, misses: u64) -> PlantTruth {
+fn truth_of(state: &PlantState, coil_count: usize, frame_seq: u64, misses: u64) -> PlantTruth {
     PlantTruth {
         frame_seq,
         sim_time_ns: millinav_kit::clock::secs_to_ns(state.time_s),
@@ -223,10 +216,10 @@ fn truth_of(state: &PlantState, frame_seq: u64, misses: u64) -> PlantTruth {
         velocity_mps: [state.velocity_mps.x, state.velocity_mps.y],
         heading_rad: state.heading_rad,
         true_flow_mps: [state.last_true_flow_mps.x, state.last_true_flow_mps.y],
-        applied_currents_a: coil_array(&state.coil_currents_a),
+        applied_currents_a: state.coil_currents_a,
         magnetic_force_n: [state.last_magnetic_force_n.x, state.last_magnetic_force_n.y],
         lockstep_misses: misses,
-        active_coils: COIL_COUNT as u32,
+        active_coils: coil_count as u32,
         wall_contact: Flag::from(state.wall_contact),
         reserved: [0; 3],
     }
@@ -303,7 +296,7 @@ struct Twin<'s> {
     config: PlantConfig,
     model: PlantModel,
     state: PlantState,
-    geometry: ImageGeometry,
+    geometry: fieldmaps::phantom::ImageGeometry,
     camera: Camera,
     /// States of the last `latency_frames` + 1 frames: frame k shows the state of frame k − L.
     history: VecDeque<PlantState>,
@@ -325,12 +318,12 @@ struct Twin<'s> {
 impl<'s> Twin<'s> {
     /// Builds the camera, starts the emulated Teensy, opens the outputs and the logs.
     fn start(rt: &mut Runtime, scenario: &'s Scenario, setup: PlantSetup) -> anyhow::Result<Self> {
-        let PlantSetup { config, model } = setup;
+        let PlantSetup { config, model, rig } = setup;
         let state = initial_state(scenario, &config, &model);
-        let geometry = ImageGeometry::default();
+        let geometry = rig.camera.geometry;
         let mut render_rng = rng_streams::run_rng(scenario.run.seed, rng_streams::CAMERA_SETUP);
         let camera = Camera::with_config(
-            &model.phantom,
+            &rig.phantom.mask,
             geometry,
             &mut render_rng,
             config.camera_noise_std,
@@ -345,14 +338,16 @@ impl<'s> Twin<'s> {
                 .join(millinav_teensy_protocol::EMULATED_PORT_LINK),
             &rt.env.run_dir.join(TeensyEventRow::FILE_NAME),
             deadlines::TEENSY_WATCHDOG,
-            COIL_COUNT,
+            model.coil_count(),
         )
         .context("starting the emulated Teensy")?;
         // iceoryx2 takes over every catchable signal the first time it checks for termination;
         // let it do so first, then claim SIGUSR1/SIGUSR2 for link faults.
         let _ = rt.shutdown_requested();
         fault_signals::install().context("installing the link-fault signal handlers")?;
-        let frames = FrameOutbox::new(&rt.node)?;
+        let frame_bytes =
+            geometry.width_px as usize * geometry.height_px as usize * FRAME_CHANNELS as usize;
+        let frames = FrameOutbox::new(&rt.node, frame_bytes)?;
         let truth_out = Outbox::<PlantTruth>::new(&rt.node, services::PLANT_TRUTH)?;
         let truth_csv = TruthCsv::create(&rt.env.run_dir.join(TRUTH_CSV))?;
         let _ = rt.rec.log_static(
@@ -430,7 +425,8 @@ impl<'s> Twin<'s> {
             .send(header, camera.frame_background(seq), |rgb| {
                 camera.finish_frame(rgb, &capsule, seq, state.time_s, &mut rng, None)
             })?;
-        self.truth_out.send(truth_of(state, seq, self.misses))?;
+        self.truth_out
+            .send(truth_of(state, self.model.coil_count(), seq, self.misses))?;
         Ok(())
     }
 
@@ -438,7 +434,8 @@ impl<'s> Twin<'s> {
     fn record_frame(&mut self, rec: &millinav_kit::rerun::RecordingStream) -> anyhow::Result<()> {
         let (seq, state) = (self.seq, &self.state);
         self.last_recorded = Some(seq);
-        self.truth_csv.append(&truth_of(state, seq, self.misses))?;
+        self.truth_csv
+            .append(&truth_of(state, self.model.coil_count(), seq, self.misses))?;
         self.contacts.record(seq, state)?;
         recording::set_time(rec, millinav_kit::clock::secs_to_ns(state.time_s), seq);
         if seq.is_multiple_of(self.config.log_every_frames.max(1)) {
@@ -476,7 +473,7 @@ impl<'s> Twin<'s> {
     /// board drives when it missed its deadline; `None` until the chain has answered once (the
     /// run starts when every process is up, not when the plant happens to be). Realtime: what
     /// the board drives at the next frame time.
-    fn await_command(&mut self) -> Option<[f64; COIL_COUNT]> {
+    fn await_command(&mut self) -> Option<[f64; MAX_RIG_COILS]> {
         match self.scenario.run.mode {
             ClockMode::Lockstep => {
                 let (outputs, in_time) = self
@@ -516,7 +513,7 @@ impl<'s> Twin<'s> {
     }
 
     /// Steps the physics one frame period with `currents` commanded.
-    fn advance(&mut self, currents: &[f64; COIL_COUNT]) {
+    fn advance(&mut self, currents: &[f64]) {
         self.model
             .step(&mut self.state, currents, self.scenario.frame_period_s());
         self.seq += 1;

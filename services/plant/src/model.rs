@@ -17,11 +17,12 @@
 //! - wall contact is resolved with swept sub-moves no longer than a quarter of the capsule
 //!   radius, so no force or speed can carry the capsule through a wall; contacts are counted.
 
-use fieldmaps::coils::{CoilField, COIL_COUNT};
+use fieldmaps::coils::CoilField;
 use fieldmaps::flowmap::FlowMap;
-use fieldmaps::phantom::Phantom;
 use fieldmaps::physics;
 use fieldmaps::rig::{FluidParams, RobotParams};
+use fieldmaps::rigfile::{RigPhantom, MAX_RIG_COILS};
+use fieldmaps::walls::WallField;
 use nalgebra::{Vector2, Vector3};
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
@@ -87,8 +88,9 @@ pub struct PlantState {
     pub velocity_mps: Vector2<f64>,
     /// Direction of the magnetic moment (tail → tip), rad from +x.
     pub heading_rad: f64,
-    /// Currents actually flowing in the coils (after the L/R lag).
-    pub coil_currents_a: [f64; COIL_COUNT],
+    /// Currents actually flowing in the coils (after the L/R lag); the rig's coils first, the
+    /// rest of the array stays 0.
+    pub coil_currents_a: [f64; MAX_RIG_COILS],
     /// True when the capsule touched a wall at any substep of the last `step`.
     pub wall_contact: bool,
     /// Number of contact onsets (free → touching transitions) since the start.
@@ -110,11 +112,12 @@ pub struct PlantModel {
     /// The true field model (the committed grid maps in the service; any `CoilField`).
     pub coils: Box<dyn CoilField + Send + Sync>,
     pub robot: RobotParams,
-    pub phantom: Phantom,
+    /// The canal walls (signed distance from the rig's mask).
+    pub walls: WallField,
     pub steady_flow: FlowMap,
     pub config: PlantPhysicsConfig,
     /// True gain of each coil relative to its nominal map.
-    pub coil_gains: [f64; COIL_COUNT],
+    pub coil_gains: [f64; MAX_RIG_COILS],
     /// Recirculation vortex and noise modes of the true flow.
     pub disturbance: FlowDisturbance,
     seed: u64,
@@ -130,7 +133,7 @@ impl PlantModel {
         coils: impl CoilField + Send + Sync + 'static,
         robot: RobotParams,
         fluid: &FluidParams,
-        phantom: Phantom,
+        phantom: &RigPhantom,
         steady_flow: FlowMap,
         config: PlantPhysicsConfig,
         seed: u64,
@@ -138,7 +141,7 @@ impl PlantModel {
         let mut rng = rng_streams::coil_gain_rng(seed);
         let gain_noise = Normal::new(0.0, config.coil_gain_error_std.abs())
             .unwrap_or_else(|_| Normal::new(0.0, 0.0).expect("zero std is valid"));
-        let mut coil_gains = [1.0; COIL_COUNT];
+        let mut coil_gains = [1.0; MAX_RIG_COILS];
         for g in coil_gains.iter_mut() {
             *g = 1.0 + gain_noise.sample(&mut rng);
         }
@@ -157,6 +160,7 @@ impl PlantModel {
         let apparent_weight =
             (robot.mass_kg - fluid.density_kg_m3 * robot.volume_m3()) * GRAVITY_MPS2;
         let disturbance = FlowDisturbance::new(
+            phantom,
             &config.recirculation,
             &config.flow_noise,
             steady_flow.condition_peak_speed(),
@@ -165,7 +169,7 @@ impl PlantModel {
         Self {
             coils: Box::new(coils),
             robot,
-            phantom,
+            walls: phantom.walls.clone(),
             steady_flow,
             config,
             coil_gains,
@@ -188,7 +192,7 @@ impl PlantModel {
             position_m,
             velocity_mps: Vector2::zeros(),
             heading_rad,
-            coil_currents_a: [0.0; COIL_COUNT],
+            coil_currents_a: [0.0; MAX_RIG_COILS],
             wall_contact: false,
             contact_events: 0,
             contact_time_s: 0.0,
@@ -245,9 +249,15 @@ impl PlantModel {
         Vector3::new(heading.cos(), heading.sin(), 0.0) * self.robot.magnet_moment_am2
     }
 
-    /// Advances the state by `dt` with the given commanded coil currents. `wall_contact` then
-    /// tells whether the capsule touched a wall at any time during the step.
-    pub fn step(&self, state: &mut PlantState, commanded_a: &[f64; COIL_COUNT], dt: f64) {
+    /// Number of coils of the rig (the first entries of the current arrays).
+    pub fn coil_count(&self) -> usize {
+        self.coils.coil_count().min(MAX_RIG_COILS)
+    }
+
+    /// Advances the state by `dt` with the given commanded coil currents (one per coil of the
+    /// rig; missing entries count as 0, extra ones are ignored). `wall_contact` then tells
+    /// whether the capsule touched a wall at any time during the step.
+    pub fn step(&self, state: &mut PlantState, commanded_a: &[f64], dt: f64) {
         let substep = (self.config.substep_ms * 1e-3).max(1e-5);
         let n = if dt.is_finite() && dt > 0.0 {
             ((dt / substep).ceil() as usize).max(1)
@@ -263,20 +273,20 @@ impl PlantModel {
         state.wall_contact = any_contact;
     }
 
-    fn substep(&self, state: &mut PlantState, commanded_a: &[f64; COIL_COUNT], h: f64) {
+    fn substep(&self, state: &mut PlantState, commanded_a: &[f64], h: f64) {
         // Coil currents follow their commands with the L/R lag (exact for a first-order lag).
         let tau = (self.config.coil_time_constant_ms * 1e-3).max(1e-6);
         let alpha = 1.0 - (-h / tau).exp();
-        for (i, c) in state.coil_currents_a.iter_mut().enumerate() {
-            let target = if commanded_a[i].is_finite() {
-                commanded_a[i]
-            } else {
-                0.0
-            };
+        let n = self.coil_count();
+        for (i, c) in state.coil_currents_a[..n].iter_mut().enumerate() {
+            let target = commanded_a
+                .get(i)
+                .copied()
+                .filter(|a| a.is_finite())
+                .unwrap_or(0.0);
             *c += alpha * (target - *c);
         }
-        let true_currents: Vec<f64> = state
-            .coil_currents_a
+        let true_currents: Vec<f64> = state.coil_currents_a[..n]
             .iter()
             .zip(&self.coil_gains)
             .map(|(c, g)| c * g)
@@ -372,11 +382,7 @@ impl PlantModel {
         let axis = Vector2::new(state.heading_rad.cos(), state.heading_rad.sin());
         [-half_axis, 0.0, half_axis]
             .iter()
-            .map(|o| {
-                self.phantom
-                    .signed_distance(&(state.position_m + axis * *o))
-                    + radius
-            })
+            .map(|o| self.walls.signed_distance(&(state.position_m + axis * *o)) + radius)
             .fold(f64::NEG_INFINITY, f64::max)
     }
 
@@ -392,9 +398,9 @@ impl PlantModel {
             let mut pushed = false;
             for offset in [-half_axis, 0.0, half_axis] {
                 let point = state.position_m + axis * offset;
-                let penetration = self.phantom.signed_distance(&point) + radius;
+                let penetration = self.walls.signed_distance(&point) + radius;
                 if penetration > 0.0 {
-                    let normal = self.phantom.wall_normal(&point);
+                    let normal = self.walls.wall_normal(&point);
                     if !(normal.x.is_finite() && normal.y.is_finite()) {
                         continue;
                     }

@@ -1,4 +1,5 @@
-//! The twin's top camera: a 1020x1020 RGB view of the phantom with the capsule drawn in it.
+//! The twin's top camera: an RGB view of the phantom at the rig's camera size and scale,
+//! with the capsule drawn in it.
 //! The capsule shows a resin body filled with blue dye, a lighter release cap at the tip and the
 //! dark magnet at the tail, so tip and tail are distinguishable as on the rig.
 //!
@@ -18,7 +19,8 @@
 //!   mask ([`MASK_BODY`], [`MASK_CAP`], [`MASK_MAGNET`], 0 elsewhere; pixel centre inside the
 //!   capsule, before blur) and the tip/centroid/tail keypoints.
 
-use fieldmaps::phantom::{rasterize, ImageGeometry, Phantom};
+use fieldmaps::mask::CanalMask;
+use fieldmaps::phantom::ImageGeometry;
 use nalgebra::Vector2;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -126,24 +128,24 @@ pub struct Camera {
 impl Camera {
     /// A camera with noise only (no blur, no drift), as before effects existed.
     pub fn new(
-        phantom: &Phantom,
+        canal: &CanalMask,
         geometry: ImageGeometry,
         rng: &mut ChaCha8Rng,
         noise_std: f64,
     ) -> Self {
-        Self::build(phantom, geometry, rng, noise_std, CameraConfig::off())
+        Self::build(canal, geometry, rng, noise_std, CameraConfig::off())
     }
 
     /// A camera with the effects of `config` (blur, lighting drift); draws from `rng` after
     /// the same draws as [`Camera::new`].
     pub fn with_config(
-        phantom: &Phantom,
+        canal: &CanalMask,
         geometry: ImageGeometry,
         rng: &mut ChaCha8Rng,
         noise_std: f64,
         config: CameraConfig,
     ) -> Self {
-        let mut camera = Self::build(phantom, geometry, rng, noise_std, config);
+        let mut camera = Self::build(canal, geometry, rng, noise_std, config);
         camera.drift_phases = (
             rng.random_range(0.0..std::f64::consts::TAU),
             rng.random_range(0.0..std::f64::consts::TAU),
@@ -165,13 +167,13 @@ impl Camera {
     }
 
     fn build(
-        phantom: &Phantom,
+        canal: &CanalMask,
         geometry: ImageGeometry,
         rng: &mut ChaCha8Rng,
         noise_std: f64,
         config: CameraConfig,
     ) -> Self {
-        let canal_mask = rasterize(phantom, &geometry);
+        let canal_mask = canal.resampled(&geometry);
         let (w, h) = (geometry.width_px as usize, geometry.height_px as usize);
         // Smooth texture from a few random plane waves: agarose is not uniform.
         let waves: Vec<(f64, f64, f64, f64)> = (0..6)

@@ -13,7 +13,7 @@
 //!   Ornstein–Uhlenbeck amplitude of unit stationary variance and correlation time
 //!   `correlation_time_s`. The RMS noise speed is `fraction` × the map's peak speed.
 
-use fieldmaps::phantom::RECIRCULATION_Y_RANGE_M;
+use fieldmaps::rigfile::{RigPhantom, Zone, ZoneKind};
 use nalgebra::Vector2;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -33,8 +33,9 @@ const BAND_EDGE_M: f64 = 1.0e-3;
 pub struct RecirculationConfig {
     /// Peak swirl speed as a fraction of the steady map's peak speed (0 disables the vortex).
     pub strength_fraction: f64,
-    /// Mean centre of the vortex (edge unit: mm, world frame).
-    pub center_mm: [f64; 2],
+    /// Mean centre of the vortex (edge unit: mm, world frame); default: the rig's
+    /// recirculation zone centre (`RigPhantom::zone_center`).
+    pub center_mm: Option<[f64; 2]>,
     /// Radius of the centre's orbit, mm.
     pub orbit_radius_mm: f64,
     /// Core radius (where the swirl speed peaks), mm.
@@ -47,7 +48,7 @@ impl Default for RecirculationConfig {
     fn default() -> Self {
         Self {
             strength_fraction: 0.25,
-            center_mm: [-14.0, 2.5],
+            center_mm: None,
             orbit_radius_mm: 1.5,
             core_radius_mm: 3.0,
             period_s: 6.0,
@@ -97,6 +98,8 @@ struct Mode {
 #[derive(Debug, Clone, PartialEq)]
 pub struct FlowDisturbance {
     vortex_speed_mps: f64,
+    /// The rig's recirculation zones: the vortex fades out over `BAND_EDGE_M` outside them.
+    vortex_zones: Vec<Zone>,
     center_m: Vector2<f64>,
     orbit_radius_m: f64,
     core_radius_m: f64,
@@ -109,7 +112,9 @@ pub struct FlowDisturbance {
 }
 
 impl FlowDisturbance {
+    /// The vortex lives in the recirculation zones of `phantom` (none: no vortex).
     pub fn new(
+        phantom: &RigPhantom,
         recirculation: &RecirculationConfig,
         noise: &FlowNoiseConfig,
         peak_speed_mps: f64,
@@ -137,9 +142,26 @@ impl FlowDisturbance {
         let finite = |x: f64| if x.is_finite() { x } else { 0.0 };
         let peak = finite(peak_speed_mps).max(0.0);
         let period = recirculation.period_s;
+        let vortex_zones: Vec<Zone> = phantom
+            .zones
+            .iter()
+            .filter(|z| z.kind == ZoneKind::Recirculation)
+            .cloned()
+            .collect();
+        let center_m = match (recirculation.center_mm, vortex_zones.first()) {
+            (Some(c), _) => Vector2::new(c[0], c[1]) * 1e-3,
+            (None, Some(zone)) => phantom.zone_center(zone),
+            (None, None) => Vector2::zeros(),
+        };
+        let strength = if vortex_zones.is_empty() {
+            0.0
+        } else {
+            finite(recirculation.strength_fraction).max(0.0)
+        };
         Self {
-            vortex_speed_mps: finite(recirculation.strength_fraction).max(0.0) * peak,
-            center_m: Vector2::new(recirculation.center_mm[0], recirculation.center_mm[1]) * 1e-3,
+            vortex_speed_mps: strength * peak,
+            vortex_zones,
+            center_m,
             orbit_radius_m: finite(recirculation.orbit_radius_mm).max(0.0) * 1e-3,
             core_radius_m: finite(recirculation.core_radius_mm).max(0.1) * 1e-3,
             omega_rad_s: if period.is_finite() && period > 0.0 {
@@ -201,9 +223,12 @@ impl FlowDisturbance {
         if self.vortex_speed_mps == 0.0 || !(p.x.is_finite() && p.y.is_finite() && t.is_finite()) {
             return Vector2::zeros();
         }
-        let (y0, y1) = RECIRCULATION_Y_RANGE_M;
-        let window = smoothstep((p.y - (y0 - BAND_EDGE_M)) / BAND_EDGE_M)
-            * smoothstep(((y1 + BAND_EDGE_M) - p.y) / BAND_EDGE_M);
+        let outside = self
+            .vortex_zones
+            .iter()
+            .map(|z| z.distance_outside(p))
+            .fold(f64::INFINITY, f64::min);
+        let window = smoothstep((BAND_EDGE_M - outside) / BAND_EDGE_M);
         if window == 0.0 {
             return Vector2::zeros();
         }
@@ -244,9 +269,14 @@ fn smoothstep(x: f64) -> f64 {
 mod tests {
     use super::*;
 
+    fn paper() -> RigPhantom {
+        fieldmaps::rigfile::Rig::load_paper().unwrap().phantom
+    }
+
     #[test]
     fn zero_peak_speed_means_no_disturbance() {
         let d = FlowDisturbance::new(
+            &paper(),
             &RecirculationConfig::default(),
             &FlowNoiseConfig::default(),
             0.0,
@@ -262,6 +292,7 @@ mod tests {
     #[test]
     fn vortex_lives_in_the_recirculation_band_and_swirls() {
         let d = FlowDisturbance::new(
+            &paper(),
             &RecirculationConfig::default(),
             &FlowNoiseConfig::default(),
             0.01,
@@ -273,12 +304,26 @@ mod tests {
         );
         let v = d.recirculation(&Vector2::new(-0.011, 0.0025), 0.0);
         assert!(v.norm() > 0.0 && v.norm() <= 0.0025 * 1.0001, "{v}");
+        // A phantom without recirculation zones has no vortex.
+        let mut bare = paper();
+        bare.zones.clear();
+        let d = FlowDisturbance::new(
+            &bare,
+            &RecirculationConfig::default(),
+            &FlowNoiseConfig::default(),
+            0.01,
+            1,
+        );
+        assert_eq!(
+            d.recirculation(&Vector2::new(-0.011, 0.0025), 0.0),
+            Vector2::zeros()
+        );
     }
 
     #[test]
     fn noise_rms_matches_fraction_and_is_correlated() {
         let cfg = FlowNoiseConfig::default();
-        let d = FlowDisturbance::new(&RecirculationConfig::default(), &cfg, 0.01, 5);
+        let d = FlowDisturbance::new(&paper(), &RecirculationConfig::default(), &cfg, 0.01, 5);
         let mut s = d.initial_noise(5);
         let h = 0.01;
         let points: Vec<Vector2<f64>> = (0..64)

@@ -2,23 +2,24 @@
 
 use std::time::Instant;
 
-use fieldmaps::phantom::{ImageGeometry, Phantom};
+use fieldmaps::mask::CanalMask;
+use fieldmaps::phantom::ImageGeometry;
 use fieldmaps::rig::RobotParams;
+use fieldmaps::rigfile::Rig;
 use millinav_plant::render::{
     blur_rgb, Camera, CameraConfig, CapsulePose, MASK_BODY, MASK_CAP, MASK_MAGNET,
 };
 use millinav_plant::rng_streams::run_rng;
 use nalgebra::Vector2;
 
+/// The paper rig's canal mask.
+fn canal() -> CanalMask {
+    Rig::load_paper().unwrap().phantom.mask
+}
+
 fn camera(config: CameraConfig) -> Camera {
     let mut rng = run_rng(7, 1);
-    Camera::with_config(
-        &Phantom::default_heart(),
-        ImageGeometry::default(),
-        &mut rng,
-        3.0,
-        config,
-    )
+    Camera::with_config(&canal(), ImageGeometry::default(), &mut rng, 3.0, config)
 }
 
 fn capsule(x_mm: f64, y_mm: f64, heading: f64) -> CapsulePose {
@@ -72,12 +73,7 @@ fn region_blur_equals_whole_frame_blur() {
 fn camera_new_is_unchanged_by_effects() {
     // `Camera::new` keeps the old behaviour: no blur, no drift.
     let mut rng = run_rng(7, 1);
-    let plain = Camera::new(
-        &Phantom::default_heart(),
-        ImageGeometry::default(),
-        &mut rng,
-        3.0,
-    );
+    let plain = Camera::new(&canal(), ImageGeometry::default(), &mut rng, 3.0);
     let with = camera(CameraConfig::off());
     assert_eq!(plain.background(2), with.background(2));
     assert_eq!(plain.frame_background(2), plain.background(2));

@@ -123,7 +123,7 @@ fn assert_inside(m: &PlantModel, s: &PlantState, tolerance_m: f64) {
     let axis = Vector2::new(s.heading_rad.cos(), s.heading_rad.sin());
     for offset in [-half, 0.0, half] {
         let p = s.position_m + axis * offset;
-        let penetration = m.phantom.signed_distance(&p) + radius;
+        let penetration = m.walls.signed_distance(&p) + radius;
         assert!(
             penetration <= tolerance_m,
             "capsule point {p:?} {:.3} mm into the wall at t = {:.3}",
@@ -159,7 +159,7 @@ fn huge_currents_never_push_the_capsule_out_of_the_canal() {
     let mut max_speed: f64 = 0.0;
     for frame in 0..400 {
         // A new wild command every 20 frames: up to 500 A per coil.
-        let command: [f64; COIL_COUNT] = if frame % 20 == 0 {
+        let command: [f64; fieldmaps::rigfile::MAX_RIG_COILS] = if frame % 20 == 0 {
             std::array::from_fn(|_| rng.random_range(-500.0..500.0))
         } else {
             s.coil_currents_a
@@ -168,7 +168,7 @@ fn huge_currents_never_push_the_capsule_out_of_the_canal() {
         max_speed = max_speed.max(s.velocity_mps.norm());
         assert!(s.position_m.iter().all(|c| c.is_finite()));
         assert!(
-            m.phantom.contains(&s.position_m),
+            m.walls.contains(&s.position_m),
             "centre left the canal at frame {frame}"
         );
         assert_inside(&m, &s, 0.05e-3);

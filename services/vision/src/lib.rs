@@ -7,6 +7,7 @@ pub mod eval;
 pub mod ort_version;
 pub mod unet;
 
+use fieldmaps::rigfile::Rig;
 use millinav_kit::ports::{FrameInbox, Outbox};
 use millinav_kit::recording;
 use millinav_kit::rerun;
@@ -96,20 +97,22 @@ pub struct FrameResult {
 }
 
 impl Pipeline {
-    pub fn new(config: &VisionConfig, scenario: &Scenario) -> Result<Self, UnetError> {
-        let size = CapsuleSize::default();
+    /// The pipeline for `rig`'s capsule seen by `rig`'s camera.
+    pub fn new(config: &VisionConfig, scenario: &Scenario, rig: &Rig) -> Result<Self, UnetError> {
+        let size = CapsuleSize {
+            length_m: rig.robot.length_m,
+            diameter_m: rig.robot.diameter_m,
+        };
         let unet = match config.localizer {
             LocalizerKind::Classical => None,
             LocalizerKind::Unet => {
                 let runtime = find_onnxruntime(config.onnxruntime.as_deref())?;
                 let model = resolve_model(config, scenario);
-                let mm_per_px =
-                    shm_schemas::FRAME_FIELD_OF_VIEW_MM / shm_schemas::FRAME_WIDTH as f64;
                 Some(UnetLocalizer::load(
                     &model,
                     &runtime,
                     size.length_m * 1e3,
-                    mm_per_px,
+                    rig.camera.geometry.mm_per_px,
                 )?)
             }
         };
@@ -310,7 +313,8 @@ pub fn prepare(scenario: &Scenario) -> Result<VisionSetup, ConfigError> {
             )));
         }
     }
-    let pipeline = Pipeline::new(&config, scenario).config_context(field("localizer"))?;
+    let rig = scenario.rig()?;
+    let pipeline = Pipeline::new(&config, scenario, &rig).config_context(field("localizer"))?;
     Ok(VisionSetup { config, pipeline })
 }
 

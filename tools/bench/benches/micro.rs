@@ -40,7 +40,9 @@ fn controllers(c: &mut Criterion) {
 }
 
 fn localizers(c: &mut Criterion) {
-    let scene = vision::Scene::render(0);
+    let Ok(scene) = vision::Scene::render(0) else {
+        return;
+    };
     let classical = vision::classical();
     let (w, h) = (scene.width as i32, scene.height as i32);
     let roi = scene.roi(20.0);

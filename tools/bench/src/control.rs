@@ -1,13 +1,14 @@
 //! Control workloads: one controller update, one full `ControlLoop::step` (controller +
 //! allocation), and the two allocations on their own.
 
+use std::sync::Arc;
+
 use fieldmaps::allocation::{
-    actuation_matrix, allocate_constrained, allocate_pinv, ConstrainedSettings,
-    DEFAULT_PLANAR_COILS,
+    actuation_matrix_from, allocate_constrained, allocate_pinv, ConstrainedSettings,
 };
-use fieldmaps::coils::CoilSystem;
 use fieldmaps::physics;
-use fieldmaps::rig::{CoilLimits, RobotParams};
+use fieldmaps::rig::CoilLimits;
+use fieldmaps::rigfile::Rig;
 use millinav_control::controllers::{ControlInput, Controller, ControllerKind, NominalModel};
 use millinav_control::reference::Reference;
 use millinav_control::{ControlConfig, ControlLoop};
@@ -27,8 +28,15 @@ fn reference() -> Result<Reference, BenchError> {
     Reference::new(&WAYPOINTS, SPEED_MPS, START_S).map_err(|e| BenchError::Setup(e.to_string()))
 }
 
-fn model() -> NominalModel {
-    let robot = RobotParams::default();
+/// The committed paper rig the workloads run on.
+pub fn paper_rig() -> Result<Arc<Rig>, BenchError> {
+    Rig::load_paper()
+        .map(Arc::new)
+        .map_err(|e| BenchError::Setup(e.to_string()))
+}
+
+fn model(rig: &Rig) -> NominalModel {
+    let robot = &rig.robot;
     NominalModel {
         mass_kg: robot.mass_kg,
         linear_drag_n_s_per_m: physics::translational_damping(
@@ -58,10 +66,12 @@ impl ControllerBench {
             controller: kind,
             ..Default::default()
         };
-        let mpc = config.mpc_gains();
+        let rig = paper_rig()?;
+        let reference = reference()?;
+        let mpc = config.mpc_gains(&rig, reference.waypoints());
         Ok(Self {
-            controller: kind.build(&config.pid, &config.smc, &mpc, model()),
-            reference: reference()?,
+            controller: kind.build(&config.pid, &config.smc, &mpc, model(&rig)),
+            reference,
         })
     }
 
@@ -99,7 +109,7 @@ impl LoopBench {
             ..Default::default()
         };
         Ok(Self {
-            control: ControlLoop::new(config, reference()?, VISCOSITY_PA_S, 0),
+            control: ControlLoop::new(config, reference()?, VISCOSITY_PA_S, 0, paper_rig()?),
             reference: reference()?,
         })
     }
@@ -134,8 +144,7 @@ impl AllocationBench {
     /// `n` cases; every fourth asks for a force beyond what the limits allow (best effort).
     pub fn new(n: usize) -> Result<Self, BenchError> {
         let reference = reference()?;
-        let coils = CoilSystem::paper_rig();
-        let robot = RobotParams::default();
+        let rig = paper_rig()?;
         let config = ControlConfig::default();
         let omega0 = config.omega0_n_per_t;
         let h = config.field_heading_deg.to_radians();
@@ -144,12 +153,12 @@ impl AllocationBench {
             .map(|k| {
                 let p = position(&reference, k * 50);
                 let heading = 0.6 + 0.01 * k as f64;
-                let moment = physics::in_plane_moment(robot.magnet_moment_am2, heading);
-                let a = actuation_matrix(
-                    &coils,
+                let moment = physics::in_plane_moment(rig.robot.magnet_moment_am2, heading);
+                let a = actuation_matrix_from(
+                    &rig.coil_field,
                     &Vector3::new(p.x, p.y, 0.0),
                     &moment,
-                    &DEFAULT_PLANAR_COILS,
+                    &rig.allocation_coils,
                     omega0,
                 );
                 let scale = if k % 4 == 3 { 50.0 } else { 1.0 };
@@ -161,7 +170,7 @@ impl AllocationBench {
             .collect();
         Ok(Self {
             cases,
-            limits: config.limits,
+            limits: config.limits_on(&rig),
             settings: ConstrainedSettings::default(),
         })
     }

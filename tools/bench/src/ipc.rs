@@ -297,7 +297,9 @@ fn send_iceoryx2(
     let node = node(rv, "bench-tx")?;
     let acks = Inbox::<Pose>::new(&node, ACK_SERVICE)?;
     let frames = match message {
-        Message::Frame | Message::FrameLoan => Some(FrameOutbox::new(&node)?),
+        Message::Frame | Message::FrameLoan => {
+            Some(FrameOutbox::new(&node, shm_schemas::FRAME_BYTES)?)
+        }
         _ => None,
     };
     let poses = match message {

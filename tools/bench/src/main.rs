@@ -102,7 +102,7 @@ fn main() -> anyhow::Result<()> {
     };
     let skip = |g: &str| cli.skip.iter().any(|s| s == g);
     let mut rows = Vec::new();
-    let scene = vision::Scene::render(0);
+    let scene = vision::Scene::render(0)?;
 
     if !skip("ipc") {
         eprintln!("ipc ...");

@@ -2,8 +2,6 @@
 
 use std::path::PathBuf;
 
-use fieldmaps::phantom::{ImageGeometry, Phantom};
-use fieldmaps::rig::RobotParams;
 use millinav_plant::render::{Camera, CameraConfig, CapsulePose};
 use millinav_vision::classical::{CapsuleSize, ClassicalLocalizer, SearchRect};
 use millinav_vision::unet::{find_onnxruntime, UnetLocalizer};
@@ -23,14 +21,19 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// Frame `seq` of the default camera with the capsule at the short scenario's start.
-    pub fn render(seq: u64) -> Self {
-        let phantom = Phantom::default_heart();
-        let geometry = ImageGeometry::default();
+    /// Frame `seq` of the paper rig's camera with the capsule at the short scenario's start.
+    pub fn render(seq: u64) -> Result<Self, BenchError> {
+        let rig = crate::control::paper_rig()?;
+        let geometry = rig.camera.geometry;
         let mut rng = ChaCha8Rng::seed_from_u64(7);
-        let camera =
-            Camera::with_config(&phantom, geometry, &mut rng, 3.0, CameraConfig::default());
-        let robot = RobotParams::default();
+        let camera = Camera::with_config(
+            &rig.phantom.mask,
+            geometry,
+            &mut rng,
+            3.0,
+            CameraConfig::default(),
+        );
+        let robot = &rig.robot;
         let position = Vector2::new(-0.018, 0.012);
         let capsule = CapsulePose {
             position_m: position,
@@ -40,13 +43,13 @@ impl Scene {
         };
         let mut rgb = camera.frame_background(seq).to_vec();
         camera.finish_frame(&mut rgb, &capsule, seq, 0.0, &mut rng, None);
-        Self {
+        Ok(Self {
             rgb,
             width: geometry.width_px as usize,
             height: geometry.height_px as usize,
             mm_per_px: geometry.mm_per_px,
             centroid_px: geometry.world_to_px(&position),
-        }
+        })
     }
 
     /// Square search rectangle of `side_mm` around the capsule (the tracker's ROI).

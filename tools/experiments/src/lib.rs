@@ -12,9 +12,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context};
-use fieldmaps::coils::COIL_COUNT;
 use millinav_coilbus::protocol::{amps_to_ma, ma_to_amps};
-use millinav_coilbus::{CoilBus, CoilbusConfig};
+use millinav_coilbus::CoilBus;
 use millinav_control::reference::Reference;
 use millinav_kit::clock::secs_to_ns;
 use millinav_kit::runlog::{self, RunLogRow, TruthRow};
@@ -24,7 +23,7 @@ use nalgebra::Vector2;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use shm_schemas::{deadlines, Flag, FrameStamp, Pose, PoseSource};
+use shm_schemas::{deadlines, Flag, FrameStamp, Pose, PoseSource, MAX_COILS};
 
 /// Flow settings of the paper.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -183,18 +182,13 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
     let mut state = millinav_plant::initial_state(scenario, &plant_config, &model);
     let mut control = millinav_control::build_loop(scenario, 0)?;
     let flow = millinav_flow::load_estimator(scenario)?;
-    let coilbus: CoilbusConfig = scenario.section("coilbus")?;
-    coilbus.validate()?;
-    let mut bus = CoilBus::new(
-        coilbus.limits.clone(),
-        deadlines::COMMAND,
-        coilbus.coil_count,
-    );
+    let coilbus = millinav_coilbus::prepare(scenario)?;
+    let mut bus = CoilBus::new(coilbus.limits, deadlines::COMMAND, coilbus.coil_count);
     let mut rng = ChaCha8Rng::seed_from_u64(scenario.run.seed ^ 0x7669_7369_6f6e);
     let noise = Normal::new(0.0, FAST_POSE_NOISE_M)?;
     let dt = scenario.frame_period_s();
     let frames = (scenario.run.duration_s / dt).ceil() as u64;
-    let mut applied = [0.0; COIL_COUNT];
+    let mut applied = [0.0; MAX_COILS];
     let mut trace = Vec::with_capacity(frames as usize + 1);
     let now = std::time::Instant::now();
     for seq in 0..=frames {
@@ -309,10 +303,11 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TraceRow>> {
             position_m: Vector2::new(row.x_m, row.y_m),
             wall_contact: row.wall_contact,
             max_abs_current_a: row.max_abs_current_a,
-            // Older traces lack the Σ I² column: bound the sum by the largest current.
+            // Older traces lack the Σ I² column: bound the sum by the largest current on every
+            // coil a command can carry.
             sum_sq_current_a2: row
                 .sum_sq_current_a2
-                .unwrap_or(row.max_abs_current_a * row.max_abs_current_a * COIL_COUNT as f64),
+                .unwrap_or(row.max_abs_current_a * row.max_abs_current_a * MAX_COILS as f64),
         });
     }
     Ok(trace)

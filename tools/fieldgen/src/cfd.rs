@@ -3,17 +3,25 @@
 //! # Model (depth-averaged 2D, documented approximation)
 //!
 //! The paper solves the 3D phantom in ANSYS Fluent and keeps (Vx, Vy) on the plane z = 8 mm
-//! above the inlet centreline. Here the phantom is the top-view canal mask (parametric phantom
-//! or a hand-outlined PNG) treated as a chamber of uniform effective depth `H`:
+//! above the inlet centreline. Here the phantom is the rig's top-view canal mask (`--rig`, its
+//! `[phantom] mask`, or `--mask`) treated as a chamber of uniform effective depth `H`:
 //!
 //! - depth-averaged incompressible Navier–Stokes with a Hele-Shaw wall-friction term:
 //!   ∂ū/∂t + (ū·∇)ū = −∇p/ρ + ν∇²ū − (12ν/H²) ū (Poiseuille profile across the depth);
 //! - solved to steady state with the D2Q9 TRT lattice Boltzmann method of [`crate::lbm`];
-//! - each inlet carries Q/2 (the paper gives 0.212 / 0.295 m/s "at each inlet" for 180 / 250
-//!   mL/min through D = 3 mm tubes, i.e. Q/2 per inlet) as a fully developed parabolic profile
-//!   across the inlet opening where the tube enters the camera view (the 85 mm tubes are
-//!   long enough for full development, paper); the outlet is a pressure outlet; all canal walls
-//!   are no-slip;
+//! - the ports are the rig's `[[phantom.inlets]]` / `[[phantom.outlets]]`. Each inlet carries
+//!   Q/n (the paper gives 0.212 / 0.295 m/s "at each inlet" for 180 / 250 mL/min through its two
+//!   D = 3 mm tubes, i.e. Q/2 per inlet) as a fully developed parabolic profile across its
+//!   opening (the paper's 85 mm tubes are long enough for full development); every outlet is a
+//!   pressure outlet at one common pressure, so several outlets share the flow by their
+//!   resistance; all canal walls are no-slip;
+//! - a port's opening is where its tube ends on the mask: from the mouth (`position_mm`), up
+//!   the tube (against an inlet's `direction`, along an outlet's) through canal cells to the
+//!   first non-canal cell — the image edge where the tube leaves the view (the paper's ports),
+//!   or an in-view wall where the drawn tube or vessel ends (a fitting that leaves the control
+//!   plane). The opening is cut square to the nearest image axis (a port may be at most 20°
+//!   off it) and is at most the tube's diameter (+ one cell each side) wide. Canal that
+//!   reaches the image edge with no port there is an error (it would silently be a wall);
 //! - control plane: with a Poiseuille profile across the depth, the mid-depth velocity is
 //!   1.5 × the depth average; the control plane is identified with mid-depth, so the map is
 //!   1.5 · ū. `H` is the one calibration constant: `H = 12 mm` makes the peak in-chamber speed
@@ -36,9 +44,8 @@ use std::time::Instant;
 use anyhow::Context;
 use fieldmaps::flowmap::FlowMap;
 use fieldmaps::mask::CanalMask;
-use fieldmaps::phantom::{
-    ImageGeometry, Phantom, HIGH_DISTURBANCE_Y_RANGE_M, RECIRCULATION_Y_RANGE_M,
-};
+use fieldmaps::phantom::{ImageGeometry, Inlet, Outlet};
+use fieldmaps::rigfile::{FlowCondition, Rig, Zone, ZoneKind};
 use nalgebra::Vector2;
 use thiserror::Error;
 
@@ -51,33 +58,34 @@ pub const EFFECTIVE_DEPTH_M: f64 = 0.012;
 /// Control-plane velocity / depth-averaged velocity (mid-depth of a Poiseuille profile).
 pub const PLANE_FACTOR: f64 = 1.5;
 /// Map nodes closer than this to the wall are left out of the "in-chamber" statistics, which
-/// excludes the inlet (3 mm) and outlet (4.2 mm) tubes, m.
+/// excludes the paper's inlet (3 mm) and outlet (4.2 mm) tubes, m.
 pub const CHAMBER_CLEARANCE_M: f64 = 3.0e-3;
-/// x (m) beyond which the outflow channel starts; the paper's zones lie left of it.
-pub const ZONE_X_MAX_M: f64 = 0.020;
 
 #[derive(Debug, Error)]
 pub enum CfdError {
     #[error(transparent)]
     Lbm(#[from] LbmError),
-    #[error("mask opening at ({x_mm:.1}, {y_mm:.1}) mm on the image edge matches no port; ports: {ports}")]
+    #[error("the canal leaves the view at ({x_mm:.1}, {y_mm:.1}) mm on the image edge and no port's tube ends there (it would be a wall); add a port there or close the mask; ports: {ports}")]
     UnmatchedOpening { x_mm: f64, y_mm: f64, ports: String },
-    #[error("port {0} has no opening on the image edge of the mask")]
-    MissingPort(String),
-    #[error("port {0} matches more than one opening on the image edge")]
-    AmbiguousPort(String),
+    /// A port the solver cannot place; `origin` names the rig file and the port's table.
+    #[error("{origin}.{field}: {message}")]
+    Port {
+        origin: String,
+        field: &'static str,
+        message: String,
+    },
     #[error("lattice too coarse for this condition: relaxation time {tau:.4} < 0.51; use a smaller --dx-mm")]
     TooCoarse { tau: f64 },
     #[error("bad parameter: {0}")]
     BadParameter(String),
 }
 
-/// A flow condition of the paper's experiment matrix.
+/// A steady flow condition: pump flow and fluid viscosity.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Condition {
     /// File stem, e.g. `q180_mu4p3`.
     pub name: String,
-    /// Total pump flow, m³/s (split equally between the two inlets).
+    /// Total pump flow, m³/s (split equally between the inlets).
     pub flow_m3_s: f64,
     /// Dynamic viscosity, Pa·s.
     pub viscosity_pa_s: f64,
@@ -101,15 +109,13 @@ impl Condition {
         self.viscosity_pa_s * 1e3
     }
 
-    /// The paper's four conditions: 180 / 250 mL/min at 4.3 / 20 cP.
-    pub fn paper() -> Vec<Self> {
-        let mut v = Vec::new();
-        for q in [180.0, 250.0] {
-            for mu in [4.3, 20.0] {
-                v.push(Self::new(q, mu));
-            }
+    /// A rig's `[[phantom.flow]]` condition (named as in the rig file).
+    pub fn from_rig(fc: &FlowCondition) -> Self {
+        Self {
+            name: fc.name.clone(),
+            flow_m3_s: fc.flow_ml_min * 1e-6 / 60.0,
+            viscosity_pa_s: fc.viscosity_pa_s,
         }
-        v
     }
 }
 
@@ -155,48 +161,59 @@ pub enum PortKind {
     Outlet,
 }
 
-/// A port: where its tube crosses the image edge.
+/// A port: where its tube meets the canal (the mouth), and which way the tube runs.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Port {
     pub name: String,
+    /// Where the port is defined, for errors, e.g. `fieldmaps/rigs/x.toml: phantom.inlets[0]`.
+    pub origin: String,
     pub kind: PortKind,
-    pub edge_point_m: Vector2<f64>,
-    /// The port tube inside the view: (mouth, unit axis pointing away from the chamber,
-    /// radius). Map nodes in it are written as zero (see [`solve`]).
-    pub tube: Option<(Vector2<f64>, Vector2<f64>, f64)>,
+    /// Where the tube opens into the canal, m.
+    pub mouth_m: Vector2<f64>,
+    /// Unit axis pointing away from the chamber (upstream for inlets, downstream for outlets).
+    pub outward: Vector2<f64>,
+    pub radius_m: f64,
 }
 
 impl Port {
-    /// Whether `p` lies in this port's tube (beyond the mouth, within radius + 0.5 mm).
+    /// Whether `p` lies in this port's tube (beyond the mouth, within radius + 0.5 mm). Map
+    /// nodes there are written as zero (see [`solve`]).
     pub fn in_tube(&self, p: &Vector2<f64>) -> bool {
-        self.tube.is_some_and(|(mouth, axis, r)| {
-            let d = p - mouth;
-            let s = d.dot(&axis);
-            s > 0.0 && (d - axis * s).norm() < r + 0.5e-3
-        })
+        let d = p - self.mouth_m;
+        let s = d.dot(&self.outward);
+        s > 0.0 && (d - self.outward * s).norm() < self.radius_m + 0.5e-3
     }
 }
 
-/// Where the ray p + t·d (t ≥ 0) leaves the rectangle [x0, x1] × [y0, y1].
-fn exit_point(
-    p: Vector2<f64>,
-    d: Vector2<f64>,
-    lo: Vector2<f64>,
-    hi: Vector2<f64>,
-) -> Vector2<f64> {
-    let mut t = f64::INFINITY;
-    for k in 0..2 {
-        if d[k] > 1e-12 {
-            t = t.min((hi[k] - p[k]) / d[k]);
-        } else if d[k] < -1e-12 {
-            t = t.min((lo[k] - p[k]) / d[k]);
-        }
-    }
-    if t.is_finite() {
-        p + d * t
-    } else {
-        p
-    }
+/// The solver's ports from a rig's `[[phantom.inlets]]` / `[[phantom.outlets]]`: inlets share
+/// the pump flow equally (the rig file gives no split), outlets are pressure outlets at one
+/// common pressure (the split between several follows from their resistance).
+pub fn rig_ports(rig_path: &Path, inlets: &[Inlet], outlets: &[Outlet]) -> Vec<Port> {
+    let n = inlets.len().max(1) as f64;
+    let file = rig_path.display();
+    let mut ports: Vec<Port> = inlets
+        .iter()
+        .enumerate()
+        .map(|(i, inlet)| Port {
+            name: inlet.name.clone(),
+            origin: format!("{file}: phantom.inlets[{i}]"),
+            kind: PortKind::Inlet {
+                flow_fraction: 1.0 / n,
+            },
+            mouth_m: inlet.mouth_m,
+            outward: -inlet.direction.into_inner(),
+            radius_m: 0.5 * inlet.diameter_m,
+        })
+        .collect();
+    ports.extend(outlets.iter().enumerate().map(|(i, outlet)| Port {
+        name: outlet.name.clone(),
+        origin: format!("{file}: phantom.outlets[{i}]"),
+        kind: PortKind::Outlet,
+        mouth_m: outlet.mouth_m,
+        outward: outlet.direction.into_inner(),
+        radius_m: 0.5 * outlet.diameter_m,
+    }));
+    ports
 }
 
 /// The view rectangle of an image geometry, m.
@@ -212,48 +229,15 @@ fn view_rect(g: &ImageGeometry) -> (Vector2<f64>, Vector2<f64>) {
     (lo, hi)
 }
 
-/// The phantom's ports on the edge of the view: inlets share the flow equally.
-pub fn phantom_ports(phantom: &Phantom, geometry: &ImageGeometry) -> Vec<Port> {
-    let (lo, hi) = view_rect(geometry);
-    let inlets = phantom.inlets();
-    let n = inlets.len().max(1) as f64;
-    let mut ports: Vec<Port> = inlets
-        .iter()
-        .map(|inlet| Port {
-            name: inlet.name.clone(),
-            kind: PortKind::Inlet {
-                flow_fraction: 1.0 / n,
-            },
-            edge_point_m: exit_point(inlet.mouth_m, -inlet.direction.into_inner(), lo, hi),
-            tube: Some((
-                inlet.mouth_m,
-                -inlet.direction.into_inner(),
-                0.5 * inlet.diameter_m,
-            )),
-        })
-        .collect();
-    let outlet = phantom.outlet();
-    ports.push(Port {
-        name: outlet.name,
-        kind: PortKind::Outlet,
-        edge_point_m: exit_point(outlet.mouth_m, outlet.direction.into_inner(), lo, hi),
-        tube: Some((
-            outlet.mouth_m,
-            outlet.direction.into_inner(),
-            0.5 * outlet.diameter_m,
-        )),
-    });
-    ports
-}
-
-/// A run of fluid cells along one side of the lattice.
+/// A port's opening: the row of fluid cells across the end of its tube, and the non-fluid
+/// cells just beyond them that the solver turns into the inlet / outlet boundary.
 #[derive(Debug, Clone)]
 struct Opening {
-    /// Interior cells of the run, in order along the side.
+    /// Fluid cells across the tube end, in order.
     cells: Vec<(i64, i64)>,
-    /// Ghost cell outside each interior cell.
+    /// Boundary cell beyond each fluid cell (ghost frame or an in-view wall cell).
     ghosts: Vec<(i64, i64)>,
-    /// Inward unit normal.
+    /// Inward unit normal (a lattice axis).
     inward: [f64; 2],
     centre_m: Vector2<f64>,
 }
@@ -276,51 +260,243 @@ impl Grid {
             self.y0 + (j as f64 + 0.5) * self.dx,
         )
     }
+
+    fn inside(&self, i: i64, j: i64) -> bool {
+        i >= 0 && j >= 0 && i < self.nx as i64 && j < self.ny as i64
+    }
+
+    /// The cell containing `p`, if on the lattice.
+    fn cell_of(&self, p: &Vector2<f64>) -> Option<(i64, i64)> {
+        let i = ((p.x - self.x0) / self.dx).floor() as i64;
+        let j = ((p.y - self.y0) / self.dx).floor() as i64;
+        self.inside(i, j).then_some((i, j))
+    }
 }
 
 /// Cells along one side of the lattice, the ghost offset, and the inward normal.
 type Side = (Vec<(i64, i64)>, (i64, i64), [f64; 2]);
 
-fn find_openings(fluid: &[bool], grid: &Grid) -> Vec<Opening> {
+/// Runs of fluid cells on the image edge (where the canal leaves the view).
+fn edge_runs(fluid: &[bool], grid: &Grid) -> Vec<Vec<(i64, i64)>> {
     let (nx, ny) = (grid.nx as i64, grid.ny as i64);
     let is_fluid = |i: i64, j: i64| fluid[(j * nx + i) as usize];
-    // (cells along the side, ghost offset, inward normal)
     let sides: [Side; 4] = [
         ((0..nx).map(|i| (i, 0)).collect(), (0, -1), [0.0, 1.0]),
         ((0..nx).map(|i| (i, ny - 1)).collect(), (0, 1), [0.0, -1.0]),
         ((0..ny).map(|j| (0, j)).collect(), (-1, 0), [1.0, 0.0]),
         ((0..ny).map(|j| (nx - 1, j)).collect(), (1, 0), [-1.0, 0.0]),
     ];
-    let mut openings = Vec::new();
-    for (cells, off, inward) in sides {
+    let mut runs = Vec::new();
+    for (cells, _, _) in sides {
         let mut run: Vec<(i64, i64)> = Vec::new();
-        let flush = |run: &mut Vec<(i64, i64)>, out: &mut Vec<Opening>| {
-            if run.is_empty() {
-                return;
+        for &(i, j) in &cells {
+            if is_fluid(i, j) {
+                run.push((i, j));
+            } else if !run.is_empty() {
+                runs.push(std::mem::take(&mut run));
             }
+        }
+        if !run.is_empty() {
+            runs.push(run);
+        }
+    }
+    runs
+}
+
+/// Largest angle between a port's direction and the nearest lattice axis: the opening is cut
+/// square to that axis, so a more oblique tube would be misrepresented.
+const MAX_PORT_OBLIQUITY_DEG: f64 = 20.0;
+
+/// Finds each port's opening. From the cell of the mouth, walk up the tube (along the lattice
+/// axis nearest to `outward`) through fluid cells until the next cell is not fluid: the image
+/// edge, where the tube leaves the view (the paper's ports), or an in-view wall, where the
+/// tube leaves the control plane or the drawn canal simply ends (a port anywhere on the mask).
+/// The opening is the row of fluid cells across the tube there whose next cell is not fluid,
+/// no wider than the tube (diameter + one cell each side).
+fn locate_openings(fluid: &[bool], grid: &Grid, ports: &[Port]) -> Result<Vec<Opening>, CfdError> {
+    let is_fluid = |i: i64, j: i64| grid.inside(i, j) && fluid[(j * grid.nx as i64 + i) as usize];
+    let mut openings: Vec<Opening> = Vec::with_capacity(ports.len());
+    for port in ports {
+        let out = port.outward;
+        let along_x = out.x.abs() >= out.y.abs();
+        let cos = out.x.abs().max(out.y.abs()) / out.norm().max(f64::MIN_POSITIVE);
+        if cos.is_nan() || cos < MAX_PORT_OBLIQUITY_DEG.to_radians().cos() {
+            return Err(CfdError::Port {
+                origin: port.origin.clone(),
+                field: "direction",
+                message: format!(
+                    "{:.0}° from the nearest x or y axis; fieldgen cfd cuts a port's opening \
+                     square to an image axis and accepts at most {MAX_PORT_OBLIQUITY_DEG}°",
+                    cos.clamp(-1.0, 1.0).acos().to_degrees()
+                ),
+            });
+        }
+        let step: (i64, i64) = if along_x {
+            (out.x.signum() as i64, 0)
+        } else {
+            (0, out.y.signum() as i64)
+        };
+        let across: (i64, i64) = (step.1.abs(), step.0.abs());
+        let mouth_mm = (port.mouth_m.x * 1e3, port.mouth_m.y * 1e3);
+        // The mouth lies on a canal pixel; at the lattice's coarser spacing its cell may fall
+        // in the wall, so take the nearest fluid cell within one cell.
+        let start = grid.cell_of(&port.mouth_m).and_then(|(i, j)| {
+            let mut best: Option<((i64, i64), f64)> = None;
+            for dj in -1..=1 {
+                for di in -1..=1 {
+                    if is_fluid(i + di, j + dj) {
+                        let d = (grid.centre(i + di, j + dj) - port.mouth_m).norm();
+                        if best.is_none_or(|b| d < b.1) {
+                            best = Some(((i + di, j + dj), d));
+                        }
+                    }
+                }
+            }
+            best.map(|b| b.0)
+        });
+        let Some(mut end) = start else {
+            return Err(CfdError::Port {
+                origin: port.origin.clone(),
+                field: "position_mm",
+                message: format!(
+                    "({:.2}, {:.2}) mm is not in the canal at the lattice spacing {:.3} mm; \
+                     move the mouth into the canal or use a smaller --dx-mm",
+                    mouth_mm.0,
+                    mouth_mm.1,
+                    grid.dx * 1e3
+                ),
+            });
+        };
+        // Canal wider than this across the walk, past the first diameter, is open chamber, not
+        // a tube: the direction points the wrong way.
+        let diameter = 2.0 * port.radius_m;
+        let max_cells = ((2.0 * diameter) / grid.dx).ceil() as i64 + 2;
+        let width_at = |c: (i64, i64)| {
+            let mut n = 1;
+            for sign in [-1i64, 1] {
+                let mut k = 1;
+                while k <= max_cells
+                    && is_fluid(c.0 + sign * k * across.0, c.1 + sign * k * across.1)
+                {
+                    n += 1;
+                    k += 1;
+                }
+            }
+            n
+        };
+        let first = end;
+        for _ in 0..grid.nx + grid.ny {
+            let next = (end.0 + step.0, end.1 + step.1);
+            if !is_fluid(next.0, next.1) {
+                break;
+            }
+            end = next;
+            let walked = (end.0 - first.0).abs().max((end.1 - first.1).abs()) as f64 * grid.dx;
+            if walked > diameter && width_at(end) > max_cells {
+                return Err(CfdError::Port {
+                    origin: port.origin.clone(),
+                    field: "direction",
+                    message: format!(
+                        "from the mouth ({:.2}, {:.2}) mm away from the canal (up an inlet, down \
+                         an outlet) the canal is still wider than twice the tube's diameter \
+                         {:.2} mm after {:.1} mm: the direction must point into the phantom for \
+                         an inlet and out of it for an outlet, and the mouth sit where the tube \
+                         meets the canal",
+                        mouth_mm.0,
+                        mouth_mm.1,
+                        diameter * 1e3,
+                        walked * 1e3
+                    ),
+                });
+            }
+        }
+        // The tube axis at the end cell's position along the walk.
+        let c_end = grid.centre(end.0, end.1);
+        let s_dir = Vector2::new(step.0 as f64, step.1 as f64);
+        let s = (c_end - port.mouth_m).dot(&s_dir) / out.dot(&s_dir);
+        let axis_at = port.mouth_m + out * s;
+        let t_dir = Vector2::new(across.0 as f64, across.1 as f64);
+        let half_width = port.radius_m + grid.dx;
+        let is_cap = |c: (i64, i64)| {
+            is_fluid(c.0, c.1)
+                && !is_fluid(c.0 + step.0, c.1 + step.1)
+                && (grid.centre(c.0, c.1) - axis_at).dot(&t_dir).abs() <= half_width
+        };
+        let mut cells = vec![end];
+        for sign in [-1i64, 1] {
+            let mut c = end;
+            loop {
+                c = (c.0 + sign * across.0, c.1 + sign * across.1);
+                if !is_cap(c) {
+                    break;
+                }
+                cells.push(c);
+            }
+        }
+        cells.sort_unstable();
+        let centre_m = cells
+            .iter()
+            .map(|&(i, j)| grid.centre(i, j))
+            .sum::<Vector2<f64>>()
+            / cells.len() as f64;
+        let ghosts = cells
+            .iter()
+            .map(|&(i, j)| (i + step.0, j + step.1))
+            .collect();
+        let opening = Opening {
+            cells,
+            ghosts,
+            inward: [-(step.0 as f64), -(step.1 as f64)],
+            centre_m,
+        };
+        if let Some(k) = openings
+            .iter()
+            .position(|o| o.cells.iter().any(|c| opening.cells.contains(c)))
+        {
+            return Err(CfdError::Port {
+                origin: port.origin.clone(),
+                field: "position_mm",
+                message: format!(
+                    "its opening at ({:.1}, {:.1}) mm is also port {}'s; give every port its \
+                     own tube",
+                    centre_m.x * 1e3,
+                    centre_m.y * 1e3,
+                    ports[k].name
+                ),
+            });
+        }
+        openings.push(opening);
+    }
+    // Canal that leaves the view with no port there would be a silent wall: refuse it.
+    for run in edge_runs(fluid, grid) {
+        if !run
+            .iter()
+            .any(|c| openings.iter().any(|o| o.cells.contains(c)))
+        {
             let centre = run
                 .iter()
                 .map(|&(i, j)| grid.centre(i, j))
                 .sum::<Vector2<f64>>()
                 / run.len() as f64;
-            let ghosts = run.iter().map(|&(i, j)| (i + off.0, j + off.1)).collect();
-            out.push(Opening {
-                cells: std::mem::take(run),
-                ghosts,
-                inward,
-                centre_m: centre,
+            return Err(CfdError::UnmatchedOpening {
+                x_mm: centre.x * 1e3,
+                y_mm: centre.y * 1e3,
+                ports: ports
+                    .iter()
+                    .map(|p| {
+                        format!(
+                            "{} at ({:.1}, {:.1}) mm",
+                            p.name,
+                            p.mouth_m.x * 1e3,
+                            p.mouth_m.y * 1e3
+                        )
+                    })
+                    .collect::<Vec<_>>()
+                    .join(", "),
             });
-        };
-        for &(i, j) in &cells {
-            if is_fluid(i, j) {
-                run.push((i, j));
-            } else {
-                flush(&mut run, &mut openings);
-            }
         }
-        flush(&mut run, &mut openings);
     }
-    openings
+    Ok(openings)
 }
 
 /// Diagnostics of one solve.
@@ -335,9 +511,9 @@ pub struct CfdStats {
     pub tau: f64,
     /// Mean inlet velocity (depth-averaged, each inlet), m/s.
     pub inlet_mean_mps: f64,
-    /// Paper's mean velocity in the round D = 3 mm tube, Q/2 / (π D²/4), m/s.
+    /// Mean velocity in the fastest round inlet tube, its share of Q / (π D²/4), m/s.
     pub tube_mean_mps: f64,
-    /// Reynolds number of the paper's tube flow, ρ U D / μ.
+    /// Reynolds number of that tube flow, ρ U D / μ.
     pub tube_reynolds: f64,
     /// Total inflow and outflow of the 2D model (× H), m³/s.
     pub inflow_m3_s: f64,
@@ -348,11 +524,11 @@ pub struct CfdStats {
     /// Peak control-plane speed in the chamber (clearance > 3 mm: the inlet and outlet tubes excluded).
     pub chamber_peak_mps: f64,
     pub chamber_peak_at_m: Vector2<f64>,
-    /// Mean speed in the high-disturbance band (x < 20 mm) / mean speed in the chamber.
+    /// Mean speed in the rig's high-disturbance zones / mean speed in the chamber.
     pub disturbance_mean_ratio: f64,
     /// Closed-streamline (recirculating) sample points (1 mm spacing in the chamber): count,
-    /// fraction of all chamber samples, fraction of the samples inside the paper's
-    /// recirculation band (x < 20 mm) and fraction of those outside it.
+    /// fraction of all chamber samples, fraction of the samples inside the rig's recirculation
+    /// zones and fraction of those outside them.
     pub recirculating_points: usize,
     pub recirculating_fraction: f64,
     pub recirculating_in_band: f64,
@@ -370,7 +546,7 @@ impl CfdStats {
     pub fn summary(&self) -> String {
         let c = &self.condition;
         format!(
-            "{name}: Q = {q:.0} mL/min, mu = {mu:.1} cP | tube U = {tu:.3} m/s (Re {re:.0}) | lattice {nx}x{ny} dx {dx:.3} mm, {cells} fluid cells, tau {tau:.3}, dt {dt:.2e} s | {steps} steps, residual {res:.1e}{conv} | mass imbalance {mi:.2e} | peak {pk:.1} mm/s at ({px:.1}, {py:.1}) mm, chamber peak {cp:.1} mm/s at ({cx:.1}, {cy:.1}) mm | high-disturbance band mean speed x{hd:.2} the chamber mean | recirculating samples: {rn} ({rf:.0} % of chamber; {rb:.0} % of the band's, {ro:.0} % elsewhere), y {ry0:.1}..{ry1:.1} mm | {secs:.1} s",
+            "{name}: Q = {q:.0} mL/min, mu = {mu:.1} cP | tube U = {tu:.3} m/s (Re {re:.0}) | lattice {nx}x{ny} dx {dx:.3} mm, {cells} fluid cells, tau {tau:.3}, dt {dt:.2e} s | {steps} steps, residual {res:.1e}{conv} | mass imbalance {mi:.2e} | peak {pk:.1} mm/s at ({px:.1}, {py:.1}) mm, chamber peak {cp:.1} mm/s at ({cx:.1}, {cy:.1}) mm | high-disturbance zone mean speed x{hd:.2} the chamber mean | recirculating samples: {rn} ({rf:.0} % of chamber; {rb:.0} % of the recirculation zone's, {ro:.0} % elsewhere), y {ry0:.1}..{ry1:.1} mm | {secs:.1} s",
             name = c.name,
             q = c.flow_ml_min(),
             mu = c.viscosity_cp(),
@@ -406,8 +582,6 @@ impl CfdStats {
 
 /// Largest lattice accepted, cells (memory and run time).
 const MAX_LATTICE_CELLS: usize = 16_000_000;
-/// An opening on the image edge belongs to the port whose edge point is nearest, within this.
-const OPENING_MATCH_RADIUS_M: f64 = 4e-3;
 /// Upper bound on the relaxation time τ; the time step is shortened to keep τ at or below it.
 const TAU_MAX: f64 = 1.5;
 /// Lower bound on τ: below it the lattice is too coarse for the viscosity to be resolved.
@@ -420,6 +594,7 @@ const INLET_FLUX_PASSES: usize = 2;
 pub fn solve(
     mask: &CanalMask,
     ports: &[Port],
+    zones: &[Zone],
     condition: &Condition,
     settings: &CfdSettings,
     progress: impl FnMut(usize, f64),
@@ -429,7 +604,11 @@ pub fn solve(
     let (lo, hi) = view_rect(mask.geometry());
     let grid = Grid::over(lo, hi, settings.dx_m)?;
     let fluid = grid.fluid_cells(mask);
-    let openings = match_openings(find_openings(&fluid, &grid), ports)?;
+    let openings: Vec<PortOpening<'_>> = locate_openings(&fluid, &grid, ports)?
+        .into_iter()
+        .zip(ports)
+        .map(|(opening, port)| PortOpening { opening, port })
+        .collect();
     let inlets = Inlets::new(&openings, condition, settings.depth_m, grid.dx)?;
     let nu = condition.viscosity_pa_s / settings.density_kg_m3;
     let units = LatticeUnits::new(settings, nu, grid.dx, inlets.peak_mps)?;
@@ -450,8 +629,18 @@ pub fn solve(
         &units,
     );
 
-    let tube_area = std::f64::consts::PI * 0.25 * fieldmaps::phantom::INLET_DIAMETER_M.powi(2);
-    let tube_mean = 0.5 * condition.flow_m3_s / tube_area;
+    // The fastest inlet tube: its share of Q through its round section.
+    let (tube_mean, tube_diameter) = ports
+        .iter()
+        .filter_map(|p| match p.kind {
+            PortKind::Inlet { flow_fraction } => Some((
+                flow_fraction * condition.flow_m3_s
+                    / (std::f64::consts::PI * p.radius_m * p.radius_m),
+                2.0 * p.radius_m,
+            )),
+            PortKind::Outlet => None,
+        })
+        .fold((0.0, 0.0), |a, b| if b.0 > a.0 { b } else { a });
     let mut stats = CfdStats {
         condition: condition.clone(),
         convergence,
@@ -462,7 +651,7 @@ pub fn solve(
         tau: units.tau,
         inlet_mean_mps: inlets.mean_mps,
         tube_mean_mps: tube_mean,
-        tube_reynolds: settings.density_kg_m3 * tube_mean * fieldmaps::phantom::INLET_DIAMETER_M
+        tube_reynolds: settings.density_kg_m3 * tube_mean * tube_diameter
             / condition.viscosity_pa_s,
         inflow_m3_s: inflow,
         outflow_m3_s: outflow,
@@ -478,7 +667,12 @@ pub fn solve(
         recirculating_y_m: (0.0, 0.0),
         seconds: 0.0,
     };
-    analyse(&map, mask, ports, &mut stats);
+    let outlet_points: Vec<Vector2<f64>> = openings
+        .iter()
+        .filter(|po| po.port.kind == PortKind::Outlet)
+        .map(|po| po.opening.centre_m)
+        .collect();
+    analyse(&map, mask, zones, &outlet_points, &mut stats);
     stats.seconds = started.elapsed().as_secs_f64();
     Ok((map, stats))
 }
@@ -538,54 +732,6 @@ impl Grid {
 struct PortOpening<'a> {
     opening: Opening,
     port: &'a Port,
-}
-
-/// Pairs every opening with the nearest port; every port must get exactly one opening.
-fn match_openings(
-    openings: Vec<Opening>,
-    ports: &[Port],
-) -> Result<Vec<PortOpening<'_>>, CfdError> {
-    let port_names = ports
-        .iter()
-        .map(|p| {
-            format!(
-                "{} at ({:.1}, {:.1}) mm",
-                p.name,
-                p.edge_point_m.x * 1e3,
-                p.edge_point_m.y * 1e3
-            )
-        })
-        .collect::<Vec<_>>()
-        .join(", ");
-    let mut assigned = vec![false; ports.len()];
-    let mut matched = Vec::with_capacity(openings.len());
-    for op in openings {
-        let best = ports
-            .iter()
-            .enumerate()
-            .map(|(pi, p)| (pi, (p.edge_point_m - op.centre_m).norm()))
-            .filter(|&(_, d)| d < OPENING_MATCH_RADIUS_M)
-            .min_by(|a, b| a.1.total_cmp(&b.1));
-        let Some((pi, _)) = best else {
-            return Err(CfdError::UnmatchedOpening {
-                x_mm: op.centre_m.x * 1e3,
-                y_mm: op.centre_m.y * 1e3,
-                ports: port_names,
-            });
-        };
-        if assigned[pi] {
-            return Err(CfdError::AmbiguousPort(ports[pi].name.clone()));
-        }
-        assigned[pi] = true;
-        matched.push(PortOpening {
-            opening: op,
-            port: &ports[pi],
-        });
-    }
-    if let Some(pi) = assigned.iter().position(|&a| !a) {
-        return Err(CfdError::MissingPort(ports[pi].name.clone()));
-    }
-    Ok(matched)
 }
 
 /// Physical inlet velocities: parabolic across each inlet opening, flux = fraction · Q / H.
@@ -834,10 +980,16 @@ fn sample_control_plane(
     }
 }
 
-/// Peak speeds, the high-disturbance band's mean speed, and recirculation found by tracing
+/// Peak speeds, the high-disturbance zones' mean speed, and recirculation found by tracing
 /// streamlines: a sample point is recirculating when its streamline neither reaches the outlet
 /// nor stalls within 400 mm of path but loops (returns within 0.5 mm of where it started).
-fn analyse(map: &FlowMap, mask: &CanalMask, ports: &[Port], stats: &mut CfdStats) {
+fn analyse(
+    map: &FlowMap,
+    mask: &CanalMask,
+    zones: &[Zone],
+    outlets: &[Vector2<f64>],
+    stats: &mut CfdStats,
+) {
     let clearance = mask.clearance_map();
     let g = *mask.geometry();
     let clear_at = |p: &Vector2<f64>| {
@@ -846,7 +998,7 @@ fn analyse(map: &FlowMap, mask: &CanalMask, ports: &[Port], stats: &mut CfdStats
             .unwrap_or(0.0)
     };
     let in_zone =
-        |p: &Vector2<f64>, band: (f64, f64)| p.x < ZONE_X_MAX_M && p.y >= band.0 && p.y <= band.1;
+        |p: &Vector2<f64>, kind: ZoneKind| zones.iter().any(|z| z.kind == kind && z.contains(p));
     let (mut band_sum, mut band_n, mut ch_sum, mut ch_n) = (0.0, 0usize, 0.0, 0usize);
     let mut chamber_points = Vec::new();
     for j in 0..map.ny {
@@ -867,7 +1019,7 @@ fn analyse(map: &FlowMap, mask: &CanalMask, ports: &[Port], stats: &mut CfdStats
             }
             ch_sum += s;
             ch_n += 1;
-            if in_zone(&p, HIGH_DISTURBANCE_Y_RANGE_M) {
+            if in_zone(&p, ZoneKind::HighDisturbance) {
                 band_sum += s;
                 band_n += 1;
             }
@@ -880,11 +1032,6 @@ fn analyse(map: &FlowMap, mask: &CanalMask, ports: &[Port], stats: &mut CfdStats
     if ch_n > 0 && band_n > 0 {
         stats.disturbance_mean_ratio = (band_sum / band_n as f64) / (ch_sum / ch_n as f64);
     }
-    let outlets: Vec<Vector2<f64>> = ports
-        .iter()
-        .filter(|p| p.kind == PortKind::Outlet)
-        .map(|p| p.edge_point_m)
-        .collect();
     let step = 0.25e-3;
     let mut recirc = Vec::new();
     for &start in &chamber_points {
@@ -921,11 +1068,11 @@ fn analyse(map: &FlowMap, mask: &CanalMask, ports: &[Port], stats: &mut CfdStats
     stats.recirculating_fraction = recirc.len() as f64 / chamber_points.len().max(1) as f64;
     let band_total = chamber_points
         .iter()
-        .filter(|p| in_zone(p, RECIRCULATION_Y_RANGE_M))
+        .filter(|p| in_zone(p, ZoneKind::Recirculation))
         .count();
     let band_recirc = recirc
         .iter()
-        .filter(|p| in_zone(p, RECIRCULATION_Y_RANGE_M))
+        .filter(|p| in_zone(p, ZoneKind::Recirculation))
         .count();
     stats.recirculating_in_band = band_recirc as f64 / band_total.max(1) as f64;
     stats.recirculating_outside_band =
@@ -980,7 +1127,12 @@ pub fn write_speed_png(map: &FlowMap, max_mps: f64, path: &Path) -> anyhow::Resu
 /// Arguments of `fieldgen cfd`.
 #[derive(Debug, clap::Args)]
 pub struct CfdArgs {
-    /// Regenerate all four committed maps (180 / 250 mL/min × 4.3 / 20 cP) into --out-dir.
+    /// Rig file: the canal mask, the ports (`[[phantom.inlets]]`, `[[phantom.outlets]]`), the
+    /// zones and the flow conditions (`[[phantom.flow]]`). Default: the paper's rig.
+    #[arg(long, default_value_os_t = fieldmaps::rigfile::paper_rig_path())]
+    pub rig: PathBuf,
+    /// Solve every `[[phantom.flow]]` condition of the rig and write each to its `map` path
+    /// (or into --out-dir under the same file name).
     #[arg(long)]
     pub all: bool,
     /// Total pump flow of a single condition, mL/min.
@@ -992,14 +1144,15 @@ pub struct CfdArgs {
     /// Output file of a single condition (default: <out-dir>/<condition>.flow.csv).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Directory of the maps.
-    #[arg(long, default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/../../fieldmaps/flow"))]
-    pub out_dir: PathBuf,
-    /// Domain from a user mask PNG (1020x1020, white = canal) instead of the parametric phantom;
-    /// its ports must open on the image edge where the default phantom's do.
+    /// Write the maps here instead of the rig's `map` paths (with --all), or the single
+    /// condition's <condition>.flow.csv.
+    #[arg(long)]
+    pub out_dir: Option<PathBuf>,
+    /// Use this canal mask PNG instead of the rig's (same size and scale as the rig's mask,
+    /// white = canal), e.g. to try an edited outline; the ports and zones stay the rig's.
     #[arg(long)]
     pub mask: Option<PathBuf>,
-    /// Write the canal mask (phantom, or --mask) as a 1020x1020 8-bit PNG here.
+    /// Write the canal mask (the rig's, or --mask) as an 8-bit PNG here.
     #[arg(long)]
     pub write_mask: Option<PathBuf>,
     /// Also write <condition>.speed.png images next to the maps.
@@ -1029,15 +1182,18 @@ pub struct CfdArgs {
 }
 
 pub fn run(args: &CfdArgs) -> anyhow::Result<()> {
-    let geometry = ImageGeometry::default();
-    let phantom = Phantom::default_heart();
+    let rig = load_rig(&args.rig)?;
     let mask = match &args.mask {
-        Some(path) => CanalMask::load_png(path, &geometry)?,
-        None => CanalMask::from_phantom(&phantom, &geometry)?,
+        Some(path) => {
+            CanalMask::load_png(path, rig.phantom.mask.geometry()).with_context(|| {
+                format!("--mask {} (must match the rig's mask size)", path.display())
+            })?
+        }
+        None => rig.phantom.mask.clone(),
     };
     let did_something = write_mask_and_validate(args, &mask)?;
-    let conditions = selected_conditions(args)?;
-    if conditions.is_empty() {
+    let jobs = selected_conditions(args, &rig)?;
+    if jobs.is_empty() {
         if !did_something {
             anyhow::bail!("nothing to do: give --all, --flow-ml-min with --viscosity-cp, --validate or --write-mask");
         }
@@ -1051,22 +1207,41 @@ pub fn run(args: &CfdArgs) -> anyhow::Result<()> {
         out_spacing_m: args.out_spacing_mm * 1e-3,
         ..CfdSettings::default()
     };
-    let ports = phantom_ports(&phantom, &geometry);
-    std::fs::create_dir_all(&args.out_dir)
-        .with_context(|| format!("creating {}", args.out_dir.display()))?;
-    let source = match &args.mask {
-        Some(p) => format!("mask {}", p.display()),
-        None => "parametric phantom (fieldmaps::phantom::Phantom::default_heart)".to_string(),
-    };
+    let ports = rig_ports(&args.rig, &rig.phantom.inlets, &rig.phantom.outlets);
+    for (_, path) in &jobs {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+    }
+    let source = format!(
+        "rig {} ({}), mask {}",
+        rig.name,
+        args.rig.display(),
+        args.mask
+            .as_deref()
+            .unwrap_or(&rig.phantom.mask_path)
+            .display()
+    );
     let job = MapJob {
         args,
         mask: &mask,
         ports: &ports,
+        zones: &rig.phantom.zones,
         settings: &settings,
         source: &source,
     };
+    let outputs: Vec<(String, PathBuf)> = jobs
+        .iter()
+        .map(|(c, p)| (c.name.clone(), p.clone()))
+        .collect();
+    let conditions = jobs.into_iter().map(|(c, _)| c).collect();
     let results = solve_in_parallel(conditions, args.threads, settings.max_steps, |c, bar| {
-        job.solve_and_write(c, bar)
+        let path = outputs
+            .iter()
+            .find(|(name, _)| *name == c.name)
+            .map(|(_, p)| p.as_path())
+            .ok_or_else(|| anyhow::anyhow!("no output path for {}", c.name))?;
+        job.solve_and_write(c, path, bar)
     })?;
     let mut failed = false;
     for (condition, result) in results {
@@ -1082,6 +1257,91 @@ pub fn run(args: &CfdArgs) -> anyhow::Result<()> {
         anyhow::bail!("some conditions failed");
     }
     Ok(())
+}
+
+/// Loads a rig for the generators (`cfd`, `coils`, `import`), which may be about to make data
+/// it names: when its flow maps fail (not made yet, or made for other conditions) the rest is
+/// loaded and the `[[phantom.flow]]` conditions are read without their maps; when its twin's
+/// coil maps fail, the twin falls back to the control model. Any other error is the loader's.
+pub fn load_rig(path: &Path) -> anyhow::Result<Rig> {
+    let mut err = match Rig::load(path) {
+        Ok(rig) => return Ok(rig),
+        Err(e) => e,
+    };
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut doc: toml::Table = toml::from_str(&text)?;
+    let mut flows = None;
+    // At most one retry per tolerated failure.
+    for _ in 0..2 {
+        let field = err.field().unwrap_or_default();
+        if field.starts_with("phantom.flow[") && flows.is_none() {
+            flows = doc
+                .get_mut("phantom")
+                .and_then(toml::Value::as_table_mut)
+                .and_then(|p| p.remove("flow"));
+        } else if field == "electromagnet.twin_field_model" {
+            doc.get_mut("electromagnet")
+                .and_then(toml::Value::as_table_mut)
+                .and_then(|e| e.remove("twin_field_model"));
+        } else {
+            return Err(err.into());
+        }
+        match Rig::parse(&toml::to_string(&doc)?, path) {
+            Ok(mut rig) => {
+                if flows.is_some() {
+                    rig.phantom.flow_conditions = flow_conditions(path, flows)?;
+                }
+                return Ok(rig);
+            }
+            Err(e) => err = e,
+        }
+    }
+    Err(err.into())
+}
+
+/// The `[[phantom.flow]]` conditions of the rig at `path`, their maps unchecked.
+fn flow_conditions(path: &Path, flows: Option<toml::Value>) -> anyhow::Result<Vec<FlowCondition>> {
+    let dir = path.parent().unwrap_or(Path::new(""));
+    let sections: Vec<FlowSection> = match flows {
+        Some(v) => v
+            .try_into()
+            .map_err(|e| anyhow::anyhow!("{}: phantom.flow: {e}", path.display()))?,
+        None => return Ok(Vec::new()),
+    };
+    let mut names = std::collections::HashSet::new();
+    let mut out = Vec::with_capacity(sections.len());
+    for (i, f) in sections.into_iter().enumerate() {
+        let bad = |key: &str, what: &str| {
+            anyhow::anyhow!("{}: phantom.flow[{i}].{key}: {what}", path.display())
+        };
+        if f.name.is_empty() || !names.insert(f.name.clone()) {
+            return Err(bad("name", "must be non-empty and unique"));
+        }
+        if !(f.flow_ml_min.is_finite() && f.flow_ml_min > 0.0) {
+            return Err(bad("flow_ml_min", "must be > 0"));
+        }
+        if !(f.viscosity_cp.is_finite() && f.viscosity_cp > 0.0) {
+            return Err(bad("viscosity_cp", "must be > 0"));
+        }
+        out.push(FlowCondition {
+            name: f.name,
+            map_path: dir.join(&f.map),
+            flow_ml_min: f.flow_ml_min,
+            viscosity_pa_s: f.viscosity_cp * 1e-3,
+        });
+    }
+    Ok(out)
+}
+
+/// A `[[phantom.flow]]` table as `fieldgen cfd` needs it (its map need not exist yet).
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FlowSection {
+    name: String,
+    map: PathBuf,
+    flow_ml_min: f64,
+    viscosity_cp: f64,
 }
 
 /// The side tasks of `fieldgen cfd`: `--write-mask` and `--validate`. Returns whether any ran.
@@ -1104,19 +1364,46 @@ fn write_mask_and_validate(args: &CfdArgs, mask: &CanalMask) -> anyhow::Result<b
     Ok(did_something)
 }
 
-/// The conditions the arguments ask for (none when they name no condition).
-fn selected_conditions(args: &CfdArgs) -> anyhow::Result<Vec<Condition>> {
-    let conditions = match (args.all, args.flow_ml_min, args.viscosity_cp) {
-        (true, None, None) => Condition::paper(),
-        (false, Some(q), Some(mu)) => vec![Condition::new(q, mu)],
+/// The conditions the arguments ask for, each with its output file (none when they name no
+/// condition).
+fn selected_conditions(args: &CfdArgs, rig: &Rig) -> anyhow::Result<Vec<(Condition, PathBuf)>> {
+    let jobs = match (args.all, args.flow_ml_min, args.viscosity_cp) {
+        (true, None, None) => {
+            if rig.phantom.flow_conditions.is_empty() {
+                anyhow::bail!(
+                    "{}: phantom.flow: --all needs at least one [[phantom.flow]] condition",
+                    args.rig.display()
+                );
+            }
+            rig.phantom
+                .flow_conditions
+                .iter()
+                .map(|fc| {
+                    let path = match &args.out_dir {
+                        Some(dir) => dir.join(fc.map_path.file_name().unwrap_or(fc.name.as_ref())),
+                        None => fc.map_path.clone(),
+                    };
+                    (Condition::from_rig(fc), path)
+                })
+                .collect()
+        }
+        (false, Some(q), Some(mu)) => {
+            let c = Condition::new(q, mu);
+            let path = match (&args.out, &args.out_dir) {
+                (Some(out), _) => out.clone(),
+                (None, Some(dir)) => dir.join(format!("{}.flow.csv", c.name)),
+                (None, None) => anyhow::bail!("give --out or --out-dir for a single condition"),
+            };
+            vec![(c, path)]
+        }
         (false, None, None) => Vec::new(),
         (true, _, _) => anyhow::bail!("--all cannot be combined with --flow-ml-min/--viscosity-cp"),
         _ => anyhow::bail!("give both --flow-ml-min and --viscosity-cp (or --all)"),
     };
-    if args.out.is_some() && conditions.len() != 1 {
-        anyhow::bail!("--out needs exactly one condition");
+    if args.out.is_some() && args.all {
+        anyhow::bail!("--out needs exactly one condition (use --out-dir with --all)");
     }
-    Ok(conditions)
+    Ok(jobs)
 }
 
 /// What every condition's solve shares: the domain, the settings and where maps go.
@@ -1124,21 +1411,24 @@ struct MapJob<'a> {
     args: &'a CfdArgs,
     mask: &'a CanalMask,
     ports: &'a [Port],
+    zones: &'a [Zone],
     settings: &'a CfdSettings,
     /// The domain's description for the map header.
     source: &'a str,
 }
 
 impl MapJob<'_> {
-    /// Solves `condition` and writes its map (and speed image with `--images`).
+    /// Solves `condition` and writes its map to `path` (and speed image with `--images`).
     fn solve_and_write(
         &self,
         condition: &Condition,
+        path: &Path,
         bar: &indicatif::ProgressBar,
     ) -> anyhow::Result<CfdStats> {
         let (map, stats) = solve(
             self.mask,
             self.ports,
+            self.zones,
             condition,
             self.settings,
             |steps, res| {
@@ -1151,12 +1441,7 @@ impl MapJob<'_> {
             stats.convergence.residual,
             stats.chamber_peak_mps * 1e3
         ));
-        let path = self.args.out.clone().unwrap_or_else(|| {
-            self.args
-                .out_dir
-                .join(format!("{}.flow.csv", condition.name))
-        });
-        std::fs::write(&path, self.map_header(condition, &stats) + &map.to_text())
+        std::fs::write(path, self.map_header(condition, &stats) + &map.to_text())
             .with_context(|| format!("writing {}", path.display()))?;
         if self.args.images {
             let png = path.with_extension("").with_extension("speed.png");
@@ -1170,11 +1455,12 @@ impl MapJob<'_> {
         let (source, settings) = (self.source, self.settings);
         format!(
             "# generated by: fieldgen cfd (depth-averaged D2Q9 TRT lattice Boltzmann, see fieldmaps/flow/README_SECTION.md)\n\
-             # domain = {source}\n\
+             # domain = {source}\n# condition = {}\n\
              # flow_ml_min = {}\n# viscosity_cp = {}\n# density_kg_m3 = {}\n\
              # effective_depth_mm = {}\n# control_plane_factor = {PLANE_FACTOR}\n\
              # lattice_dx_mm = {:.4}\n# steps = {}\n# residual = {:.3e}\n\
              # mass_imbalance = {:.3e}\n# peak_mps = {:.5}\n# chamber_peak_mps = {:.5}\n",
+            condition.name,
             condition.flow_ml_min(),
             condition.viscosity_cp(),
             settings.density_kg_m3,

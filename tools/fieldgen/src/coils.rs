@@ -12,11 +12,12 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use anyhow::{bail, Context};
 use fieldmaps::coils::{
-    calibrate_paper_rig, CoilField, CoilSystem, PaperRigLayout, PAPER_CALIBRATION_COILS,
+    calibrate_paper_rig, Coil, CoilField, CoilSystem, PaperRigLayout, PAPER_CALIBRATION_COILS,
     PAPER_CALIBRATION_POWER_W, PAPER_GRADIENT_T_PER_M, PAPER_PEAK_FIELD_T,
 };
 use fieldmaps::fieldmap::{sample_coil, CoilFieldMaps, CoilInfo, GridSpec, Interpolation};
 use fieldmaps::rig::CoilLimits;
+use fieldmaps::rigfile::{FieldModel, Rig, RigCoilField};
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -24,8 +25,11 @@ use serde::{Deserialize, Serialize};
 /// Arguments of `fieldgen coils`.
 #[derive(Debug, clap::Args)]
 pub struct CoilsArgs {
-    /// Map directory to write (or, with --check, to verify). Default: fieldmaps/coils in this
-    /// repository.
+    /// Rig file whose coils to model (their windings and turns). Default: the paper's rig.
+    #[arg(long, default_value_os_t = fieldmaps::rigfile::paper_rig_path())]
+    pub rig: PathBuf,
+    /// Map directory to write (or, with --check, to verify). Default: the rig's `maps:`
+    /// directory (`twin_field_model`, else `field_model`; fieldmaps/coils for the paper's rig).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Grid spacing, mm (shrunk slightly if needed so nodes land on the faces).
@@ -68,8 +72,57 @@ pub struct CoilsArgs {
     pub python: Option<PathBuf>,
 }
 
+/// The closed-form model of a rig's coils: the rig's analytic model when it has one, else
+/// built from the windings and turns the file gives (informational with `maps:`).
+pub fn rig_system(rig: &Rig) -> anyhow::Result<CoilSystem> {
+    for field in [&rig.coil_field, &rig.twin_coil_field] {
+        if let RigCoilField::Analytic(system) = field {
+            return Ok(system.clone());
+        }
+    }
+    let coils = rig
+        .coils
+        .iter()
+        .enumerate()
+        .map(|(i, c)| match (&c.winding, c.turns) {
+            (Some(w), Some(turns)) => Ok(Coil::from_winding(
+                c.name.clone(),
+                c.center_m,
+                c.axis,
+                w,
+                turns,
+            )),
+            _ => Err(anyhow::anyhow!(
+                "{}: coils[{i}]: fieldgen coils needs `turns` and [coils.winding] to model this coil",
+                rig.path.display()
+            )),
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    Ok(CoilSystem { coils })
+}
+
+/// Where the rig keeps its coil maps, if it uses any (the twin's first).
+fn rig_maps_dir(rig: &Rig) -> Option<PathBuf> {
+    [&rig.twin_field_model, &rig.field_model]
+        .into_iter()
+        .find_map(|m| match m {
+            FieldModel::Maps(dir) => Some(dir.clone()),
+            FieldModel::Analytic => None,
+        })
+}
+
+/// Whether the rig has the paper's FEA calibration case (its N_small and N_large coils, in
+/// the paper's order): only then is that case reported.
+fn has_paper_case(system: &CoilSystem) -> bool {
+    PAPER_CALIBRATION_COILS
+        .iter()
+        .zip(["N_small", "N_large"])
+        .all(|(&i, name)| system.coils.get(i).is_some_and(|c| c.name == name))
+}
+
 pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
-    let system = CoilSystem::paper_rig();
+    let rig = crate::cfd::load_rig(&args.rig)?;
+    let system = rig_system(&rig)?;
     if let Some(path) = &args.export_loops {
         write_json(path, &export_loops(&system))?;
         println!(
@@ -95,8 +148,21 @@ pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
         return Ok(());
     }
 
-    let calibration = report_calibration(&system)?;
-    let dir = args.out.clone().unwrap_or_else(CoilFieldMaps::default_dir);
+    let paper_case = has_paper_case(&system);
+    let calibration = if paper_case {
+        Some(report_calibration(&system)?)
+    } else {
+        println!("calibration: none (the rig has not the paper's FEA case; the field is the windings' Biot–Savart as given)");
+        None
+    };
+    let dir = match (&args.out, rig_maps_dir(&rig)) {
+        (Some(out), _) => out.clone(),
+        (None, Some(dir)) => dir,
+        (None, None) => bail!(
+            "{}: electromagnet: the rig uses no maps: directory; give --out",
+            args.rig.display()
+        ),
+    };
     if !args.check {
         let grid = GridSpec::centered(
             [
@@ -111,13 +177,19 @@ pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
             "fieldgen coils --spacing-mm {} --half-xy-mm {} --half-z-mm {}",
             args.spacing_mm, args.half_xy_mm, args.half_z_mm
         );
-        maps.write(
-            &dir,
+        let description = if paper_case {
             "Current-normalized field and gradient of the 12 paper-rig coils (closed-form \
-             Biot-Savart, calibrated to the paper's FEA case); see FORMAT.md",
-            &command,
-            Some(calibration),
-        )?;
+             Biot-Savart, calibrated to the paper's FEA case); see FORMAT.md"
+                .to_string()
+        } else {
+            format!(
+                "Current-normalized field and gradient of the {} coils of rig {} (closed-form \
+                 Biot-Savart of their windings); see FORMAT.md",
+                system.len(),
+                rig.name
+            )
+        };
+        maps.write(&dir, &description, &command, calibration)?;
         let bytes: u64 = std::fs::read_dir(&dir)?
             .filter_map(|e| e.ok()?.metadata().ok())
             .map(|m| m.len())
@@ -143,7 +215,9 @@ pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
         g.origin_m[2] * 1e3,
         g.max_m()[2] * 1e3,
     );
-    report_map_calibration(&maps)?;
+    if paper_case {
+        report_map_calibration(&maps)?;
+    }
     println!(
         "interpolation error vs direct Biot–Savart at {} random points in the grid box, all {} coils \
          (relative: |ΔB̃|/|B̃| and ‖Δ∇B̃‖_F/‖∇B̃‖_F):",

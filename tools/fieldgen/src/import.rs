@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use fieldmaps::flowmap::FlowMap;
 use fieldmaps::mask::CanalMask;
-use fieldmaps::phantom::{ImageGeometry, Phantom};
+use fieldmaps::phantom::ImageGeometry;
 use nalgebra::Vector2;
 use thiserror::Error;
 
@@ -397,7 +397,7 @@ pub struct GridSpec {
 }
 
 impl GridSpec {
-    /// The camera view (92 mm) at `spacing_m`, centred like `fieldgen cfd`'s maps.
+    /// The camera view at `spacing_m`, centred like `fieldgen cfd`'s maps.
     pub fn view(geometry: &ImageGeometry, spacing_m: f64) -> Self {
         let w = f64::from(geometry.width_px) * geometry.mm_per_px * 1e-3;
         let h = f64::from(geometry.height_px) * geometry.mm_per_px * 1e-3;
@@ -539,6 +539,9 @@ pub fn resample(
 pub struct ImportArgs {
     /// The export file (Fluent ASCII/CSV or OpenFOAM raw/CSV).
     pub input: PathBuf,
+    /// Rig file: the camera view the map covers and the canal mask. Default: the paper's rig.
+    #[arg(long, default_value_os_t = fieldmaps::rigfile::paper_rig_path())]
+    pub rig: PathBuf,
     /// Output flow map (.flow.csv).
     #[arg(long)]
     pub out: PathBuf,
@@ -570,10 +573,10 @@ pub struct ImportArgs {
     /// Search radius around each grid node, mm.
     #[arg(long, default_value_t = 1.0)]
     pub radius_mm: f64,
-    /// Output grid spacing over the 92 mm view, mm.
+    /// Output grid spacing over the rig's camera view, mm.
     #[arg(long, default_value_t = 0.5)]
     pub spacing_mm: f64,
-    /// Canal mask PNG (1020x1020, white = canal); default: the parametric phantom.
+    /// Canal mask PNG (white = canal, the size and scale of the rig's mask) instead of the rig's.
     #[arg(long)]
     pub mask: Option<PathBuf>,
     /// Fill every grid node (no canal mask).
@@ -601,14 +604,13 @@ pub fn import_file(
 }
 
 pub fn run(args: &ImportArgs) -> anyhow::Result<()> {
-    let geometry = ImageGeometry::default();
+    // The rig's own flow maps need not exist yet: this may be what makes one.
+    let rig = crate::cfd::load_rig(&args.rig)?;
+    let geometry = rig.camera.geometry;
     let mask = match (&args.mask, args.no_mask) {
         (_, true) => None,
-        (Some(p), false) => Some(CanalMask::load_png(p, &geometry)?),
-        (None, false) => Some(CanalMask::from_phantom(
-            &Phantom::default_heart(),
-            &geometry,
-        )?),
+        (Some(p), false) => Some(CanalMask::load_png(p, rig.phantom.mask.geometry())?),
+        (None, false) => Some(rig.phantom.mask.clone()),
     };
     if !(args.spacing_mm > 0.0 && args.plane_tol_mm >= 0.0) {
         anyhow::bail!("--spacing-mm must be > 0 and --plane-tol-mm ≥ 0");

@@ -1,20 +1,233 @@
-//! `fieldgen rig-check`: load and validate a rig file, print what it describes.
+//! `fieldgen rig-check`: load and validate a rig file, print what it describes, and the force
+//! its coils can guarantee on the canal while holding an orientation field.
 use std::path::PathBuf;
 
+use fieldmaps::allocation::{actuation_matrix_from, allocate_pinv};
+use fieldmaps::physics::in_plane_moment;
 use fieldmaps::rigfile::Rig;
+use nalgebra::{DVector, Vector2, Vector3};
 
 #[derive(clap::Args, Debug)]
 pub struct RigCheckArgs {
     /// Rig file to check (e.g. fieldmaps/rigs/paper.toml).
     #[arg(long)]
     pub rig: PathBuf,
+    /// Orientation-field magnitudes (mT) at which to report the guaranteed force (1 mT is
+    /// services/control's default `field_magnitude_mt`); empty (`--field-mt=`) skips it.
+    #[arg(long, value_delimiter = ',', default_values_t = [1.0, 5.0, 10.0])]
+    pub field_mt: Vec<f64>,
+    /// Control's ω0 (N/T): weight of the field rows in the pseudo-inverse allocation
+    /// (services/control `omega0_n_per_t`).
+    #[arg(long, default_value_t = 0.05)]
+    pub omega0: f64,
+    /// Spacing of the canal sample points of the force budget, mm.
+    #[arg(long, default_value_t = 2.0)]
+    pub spacing_mm: f64,
+    /// Fail unless the guaranteed force at every route point and field is at least this, mN.
+    #[arg(long)]
+    pub min_force_mn: Option<f64>,
 }
 
-/// Loads the rig (every file it names included) and prints its summary, or fails with the
-/// error naming the file and the field.
+/// Force directions and field headings tried at each point.
+const FORCE_DIRECTIONS: u32 = 16;
+const FIELD_HEADINGS: u32 = 8;
+/// Bisection steps on the force magnitude (1 N upper bound: far beyond any coil set here).
+const BISECTION_STEPS: u32 = 40;
+
+/// Which current limits the budget respects.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LimitModel {
+    /// Each coil's own `max_current_a` and `resistance_ohm`.
+    PerCoil,
+    /// [`Rig::coil_limits`]: the lowest current limit and highest resistance for all coils, as
+    /// services/control's allocation (and its MPC force bound) uses them.
+    Conservative,
+}
+
+/// The largest force (N) the pseudo-inverse allocation guarantees at `p` (m) in every in-plane
+/// direction, for every field heading, while holding a field of `field_t` (T) with the robot
+/// aligned to it, within the limits (per-coil current, total power). As
+/// services/control `estimate_max_force_n`, minimised over field headings as well. 0 when the
+/// field alone is out of reach.
+pub fn guaranteed_force_n(
+    rig: &Rig,
+    p: &Vector2<f64>,
+    field_t: f64,
+    omega0: f64,
+    limits: LimitModel,
+) -> f64 {
+    let ids = &rig.allocation_coils;
+    let conservative = rig.coil_limits();
+    let (max_i, res): (Vec<f64>, Vec<f64>) = ids
+        .iter()
+        .map(|&k| match limits {
+            LimitModel::PerCoil => (rig.coils[k].max_current_a, rig.coils[k].resistance_ohm),
+            LimitModel::Conservative => {
+                (conservative.max_current_a, conservative.coil_resistance_ohm)
+            }
+        })
+        .unzip();
+    let feasible = |i: &DVector<f64>| {
+        i.iter().zip(&max_i).all(|(c, m)| c.abs() <= *m)
+            && i.iter().zip(&res).map(|(c, r)| c * c * r).sum::<f64>() <= rig.max_total_power_w
+    };
+    let p3 = Vector3::new(p.x, p.y, 0.0);
+    let mut best = f64::INFINITY;
+    for h in 0..FIELD_HEADINGS {
+        let heading = f64::from(h) * std::f64::consts::TAU / f64::from(FIELD_HEADINGS);
+        let moment = in_plane_moment(rig.robot.magnet_moment_am2, heading);
+        let a = actuation_matrix_from(&rig.coil_field, &p3, &moment, ids, omega0);
+        let b = Vector2::new(heading.cos(), heading.sin()) * field_t;
+        let rhs = DVector::from_vec(vec![0.0, 0.0, omega0 * b.x, omega0 * b.y]);
+        let Ok(i_field) = allocate_pinv(&a, &rhs) else {
+            return 0.0;
+        };
+        if !feasible(&i_field) {
+            return 0.0;
+        }
+        for k in 0..FORCE_DIRECTIONS {
+            let th = f64::from(k) * std::f64::consts::TAU / f64::from(FORCE_DIRECTIONS);
+            let unit = DVector::from_vec(vec![th.cos(), th.sin(), 0.0, 0.0]);
+            let Ok(i_unit) = allocate_pinv(&a, &unit) else {
+                return 0.0;
+            };
+            let (mut lo, mut hi) = (0.0, 1.0);
+            if feasible(&(&i_field + &i_unit * hi)) {
+                best = best.min(hi);
+                continue;
+            }
+            for _ in 0..BISECTION_STEPS {
+                let mid = 0.5 * (lo + hi);
+                if feasible(&(&i_field + &i_unit * mid)) {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            best = best.min(lo);
+        }
+    }
+    if best.is_finite() {
+        best
+    } else {
+        0.0
+    }
+}
+
+/// The force budget at one field magnitude.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ForceBudget {
+    pub field_t: f64,
+    /// Guaranteed force at the route's start and end, N (conservative limits).
+    pub route_n: Option<(f64, f64)>,
+    /// Lowest guaranteed force over the canal sample points, N, and where (conservative).
+    pub canal_min_n: f64,
+    pub canal_min_at_m: Vector2<f64>,
+    /// The same lowest force with each coil's own limits, N.
+    pub canal_min_per_coil_n: f64,
+    pub canal_points: usize,
+}
+
+/// The force budget over the canal (points `spacing_m` apart) and at the route.
+pub fn force_budget(rig: &Rig, field_t: f64, omega0: f64, spacing_m: f64) -> ForceBudget {
+    let g = *rig.phantom.mask.geometry();
+    let (w, h) = (
+        f64::from(g.width_px) * g.mm_per_px * 1e-3,
+        f64::from(g.height_px) * g.mm_per_px * 1e-3,
+    );
+    let lo = Vector2::new(g.origin_x_mm * 1e-3, g.origin_y_mm * 1e-3 - h);
+    let force = |p: &Vector2<f64>, l| guaranteed_force_n(rig, p, field_t, omega0, l);
+    let mut budget = ForceBudget {
+        field_t,
+        route_n: rig.phantom.route.map(|r| {
+            (
+                force(&r.start_m, LimitModel::Conservative),
+                force(&r.end_m, LimitModel::Conservative),
+            )
+        }),
+        canal_min_n: f64::INFINITY,
+        canal_min_at_m: Vector2::zeros(),
+        canal_min_per_coil_n: f64::INFINITY,
+        canal_points: 0,
+    };
+    let (nx, ny) = (
+        (w / spacing_m).floor() as usize,
+        (h / spacing_m).floor() as usize,
+    );
+    for j in 0..ny {
+        for i in 0..nx {
+            let p = lo + Vector2::new(i as f64 + 0.5, j as f64 + 0.5) * spacing_m;
+            if !rig.phantom.contains(&p) {
+                continue;
+            }
+            budget.canal_points += 1;
+            let f = force(&p, LimitModel::Conservative);
+            if f < budget.canal_min_n {
+                budget.canal_min_n = f;
+                budget.canal_min_at_m = p;
+            }
+            budget.canal_min_per_coil_n = budget
+                .canal_min_per_coil_n
+                .min(force(&p, LimitModel::PerCoil));
+        }
+    }
+    budget
+}
+
+/// Loads the rig (every file it names included) and prints its summary and force budget, or
+/// fails with the error naming the file and the field.
 pub fn run(args: &RigCheckArgs) -> anyhow::Result<()> {
     let rig = Rig::load(&args.rig)?;
     print!("{}", rig.summary());
+    if !(args.omega0.is_finite() && args.omega0 > 0.0) {
+        anyhow::bail!("--omega0 must be > 0");
+    }
+    if !(args.spacing_mm.is_finite() && args.spacing_mm > 0.0) {
+        anyhow::bail!("--spacing-mm must be > 0");
+    }
+    let mut weakest_route = f64::INFINITY;
+    for &mt in &args.field_mt {
+        if !(mt.is_finite() && mt >= 0.0) {
+            anyhow::bail!("--field-mt: {mt} is not a field magnitude ≥ 0");
+        }
+        let b = force_budget(&rig, mt * 1e-3, args.omega0, args.spacing_mm * 1e-3);
+        let route = match b.route_n {
+            Some((s, e)) => {
+                weakest_route = weakest_route.min(s.min(e));
+                format!("route start {:.3} mN, end {:.3} mN; ", s * 1e3, e * 1e3)
+            }
+            None => String::new(),
+        };
+        // 0 means the field alone (with zero force) is already beyond the limits somewhere.
+        let reach = if b.canal_min_n > 0.0 {
+            ""
+        } else {
+            " [the field alone is out of reach at some canal points]"
+        };
+        println!(
+            "force budget at {mt} mT (ω0 {} N/T, any direction, any field heading): {route}canal minimum {:.3} mN at ({:.1}, {:.1}) mm over {} points ({:.3} mN with each coil's own limits){reach}",
+            args.omega0,
+            b.canal_min_n * 1e3,
+            b.canal_min_at_m.x * 1e3,
+            b.canal_min_at_m.y * 1e3,
+            b.canal_points,
+            b.canal_min_per_coil_n * 1e3,
+        );
+    }
+    if let Some(min) = args.min_force_mn {
+        if rig.phantom.route.is_none() {
+            anyhow::bail!(
+                "{}: phantom.route: --min-force-mn needs a [phantom.route]",
+                args.rig.display()
+            );
+        }
+        if weakest_route * 1e3 < min {
+            anyhow::bail!(
+                "guaranteed force on the route {:.3} mN < --min-force-mn {min}",
+                weakest_route * 1e3
+            );
+        }
+    }
     println!("rig ok");
     Ok(())
 }

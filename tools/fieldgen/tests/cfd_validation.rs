@@ -1,10 +1,15 @@
 //! Solver validation (run with `cargo test --release -p fieldgen -- --nocapture` to see the
 //! numbers) and an end-to-end phantom solve from a mask PNG.
 
-use fieldgen::cfd::{phantom_ports, solve, CfdError, CfdSettings, Condition, CHAMBER_CLEARANCE_M};
+use std::path::{Path, PathBuf};
+
+use fieldgen::cfd::{
+    rig_ports, solve, CfdError, CfdSettings, Condition, Port, CHAMBER_CLEARANCE_M,
+};
 use fieldgen::validate;
 use fieldmaps::mask::CanalMask;
 use fieldmaps::phantom::{ImageGeometry, Phantom};
+use fieldmaps::rigfile::Rig;
 
 #[test]
 fn poiseuille_profile_and_mass_conservation() {
@@ -39,29 +44,39 @@ fn tmp(name: &str) -> std::path::PathBuf {
     std::env::temp_dir().join(format!("millinav-cfd-{}-{name}", std::process::id()))
 }
 
-#[test]
-fn phantom_from_mask_png_conserves_mass() {
-    let g = ImageGeometry::default();
-    let phantom = Phantom::default_heart();
-    let path = tmp("mask.png");
-    CanalMask::from_phantom(&phantom, &g)
-        .unwrap()
-        .save_png(&path)
-        .unwrap();
-    let mask = CanalMask::load_png(&path, &g).unwrap();
-    std::fs::remove_file(&path).ok();
-    let settings = CfdSettings {
-        dx_m: 0.6e-3,
+fn rig_file(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../../fieldmaps/rigs/{name}.toml"))
+}
+
+/// The rig's ports, as `fieldgen cfd --rig` builds them.
+fn ports_of(rig: &Rig) -> Vec<Port> {
+    rig_ports(&rig.path, &rig.phantom.inlets, &rig.phantom.outlets)
+}
+
+fn coarse(dx_m: f64) -> CfdSettings {
+    CfdSettings {
+        dx_m,
         out_spacing_m: 1e-3,
         tolerance: 1e-6,
         ..CfdSettings::default()
-    };
+    }
+}
+
+#[test]
+fn phantom_from_mask_png_conserves_mass() {
+    let rig = Rig::load(&rig_file("paper")).unwrap();
+    let g = *rig.phantom.mask.geometry();
+    let path = tmp("mask.png");
+    rig.phantom.mask.save_png(&path).unwrap();
+    let mask = CanalMask::load_png(&path, &g).unwrap();
+    std::fs::remove_file(&path).ok();
     let cond = Condition::new(180.0, 20.0);
     let (map, stats) = solve(
         &mask,
-        &phantom_ports(&phantom, &g),
+        &ports_of(&rig),
+        &rig.phantom.zones,
         &cond,
-        &settings,
+        &coarse(0.6e-3),
         |_, _| {},
     )
     .unwrap();
@@ -78,35 +93,109 @@ fn phantom_from_mask_png_conserves_mass() {
     assert!(neck.y < 0.0, "{neck:?}");
 }
 
-#[test]
-fn mask_without_a_port_is_a_clear_error() {
-    let g = ImageGeometry::default();
-    let phantom = Phantom::default_heart();
-    let full = CanalMask::from_phantom(&phantom, &g).unwrap();
-    // Close inlet 2 (left edge at y = −1 mm) by blanking the first 20 columns.
-    let mut px: Vec<bool> = full.to_bytes().iter().map(|&b| b > 0).collect();
+/// The paper's canal with inlet 2's tube cut short of the image edge (first 20 columns walled).
+fn paper_with_inlet2_closed(rig: &Rig) -> CanalMask {
+    let g = *rig.phantom.mask.geometry();
+    let mut px: Vec<bool> = rig.phantom.mask.canal_flags().to_vec();
     for r in 0..g.height_px as usize {
         for c in 0..20 {
             px[r * g.width_px as usize + c] = false;
         }
     }
-    let mask = CanalMask::from_pixels(g, px).unwrap();
-    let settings = CfdSettings {
-        dx_m: 1e-3,
-        ..CfdSettings::default()
-    };
-    let err = solve(
+    CanalMask::from_pixels(g, px).unwrap()
+}
+
+#[test]
+fn port_inside_the_view_opens_where_its_tube_ends() {
+    // Inlet 2's tube now ends in the view: its inflow enters there, not at the image edge.
+    let rig = Rig::load(&rig_file("paper")).unwrap();
+    let mask = paper_with_inlet2_closed(&rig);
+    let (map, stats) = solve(
         &mask,
-        &phantom_ports(&phantom, &g),
+        &ports_of(&rig),
+        &rig.phantom.zones,
         &Condition::new(180.0, 20.0),
-        &settings,
+        &coarse(0.6e-3),
         |_, _| {},
     )
-    .unwrap_err();
+    .unwrap();
+    println!("{}", stats.summary());
+    assert!(stats.convergence.converged);
+    assert!(stats.mass_imbalance() < 1e-2, "{}", stats.mass_imbalance());
+    // The shortened tube still delivers its jet into the atrium (+x past the mouth; the tube
+    // itself is written as zero).
+    let jet = map.sample(&nalgebra::Vector2::new(-0.0245, -0.001));
+    assert!(jet.x > 1e-3, "{jet:?}");
+}
+
+#[test]
+fn vessel8_branch_outlet_on_its_end_cap() {
+    // The second rig: one inlet on the left edge, the main outlet on the right edge and the
+    // branch outlet on a cap inside the view.
+    let rig = Rig::load(&rig_file("vessel8")).unwrap();
+    let (map, stats) = solve(
+        &rig.phantom.mask,
+        &ports_of(&rig),
+        &rig.phantom.zones,
+        &Condition::new(120.0, 4.3),
+        &coarse(0.5e-3),
+        |_, _| {},
+    )
+    .unwrap();
+    println!("{}", stats.summary());
+    assert!(stats.convergence.converged);
+    assert!(stats.mass_imbalance() < 1e-2, "{}", stats.mass_imbalance());
+    // Both outlets take flow: down the branch's end stretch, right along the main vessel.
+    let branch = map.sample(&nalgebra::Vector2::new(0.025, -0.026));
+    assert!(branch.y < -1e-3, "{branch:?}");
+    let main = map.sample(&nalgebra::Vector2::new(0.040, 0.0165));
+    assert!(main.x > 1e-3, "{main:?}");
+}
+
+#[test]
+fn port_errors_name_the_rig_file_and_field() {
+    let rig = Rig::load(&rig_file("paper")).unwrap();
+    let settings = coarse(1e-3);
+    let cond = Condition::new(180.0, 20.0);
+    let run = |mask: &CanalMask, ports: &[Port]| {
+        solve(mask, ports, &rig.phantom.zones, &cond, &settings, |_, _| {}).unwrap_err()
+    };
+    let file = rig.path.display().to_string();
+
+    // A mouth in the wall.
+    let mut ports = ports_of(&rig);
+    ports[1].mouth_m = nalgebra::Vector2::new(0.040, -0.040);
+    let err = run(&rig.phantom.mask, &ports).to_string();
     assert!(
-        matches!(err, CfdError::MissingPort(ref p) if p == "inlet-2"),
+        err.starts_with(&format!("{file}: phantom.inlets[1].position_mm:")),
         "{err}"
     );
+
+    // A direction pointing into the chamber: the walk crosses open canal.
+    let mut ports = ports_of(&rig);
+    ports[0].outward = -ports[0].outward;
+    let err = run(&rig.phantom.mask, &ports).to_string();
+    assert!(
+        err.starts_with(&format!("{file}: phantom.inlets[0].direction:")),
+        "{err}"
+    );
+
+    // Too oblique for an opening cut square to the lattice.
+    let mut ports = ports_of(&rig);
+    ports[2].outward = nalgebra::Vector2::new(1.0, 1.0).normalize();
+    let err = run(&rig.phantom.mask, &ports).to_string();
+    assert!(
+        err.starts_with(&format!("{file}: phantom.outlets[0].direction:")),
+        "{err}"
+    );
+
+    // Canal that leaves the view with no port there.
+    let ports: Vec<Port> = ports_of(&rig)
+        .into_iter()
+        .filter(|p| p.name != "inlet-2")
+        .collect();
+    let err = run(&rig.phantom.mask, &ports);
+    assert!(matches!(err, CfdError::UnmatchedOpening { .. }), "{err}");
 }
 
 /// Peak speed (m/s) over the map nodes in the heart chamber: on the canal and farther than
@@ -134,9 +223,18 @@ fn chamber_peak_from_velocities(map: &fieldmaps::flowmap::FlowMap, mask: &CanalM
 #[test]
 fn committed_flow_maps_load_with_paper_peaks() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fieldmaps/flow");
-    // The committed maps were solved on the parametric phantom (their `domain` header).
+    // The committed maps were solved on the parametric phantom (their `domain` header), which
+    // the paper rig's mask rasterises.
     let mask =
         CanalMask::from_phantom(&Phantom::default_heart(), &ImageGeometry::default()).unwrap();
+    assert_eq!(
+        mask.canal_flags(),
+        Rig::load(&rig_file("paper"))
+            .unwrap()
+            .phantom
+            .mask
+            .canal_flags()
+    );
     for (name, target) in [
         ("q180_mu4p3", 0.07),
         ("q180_mu20", 0.07),

@@ -55,3 +55,39 @@ fn bad_rig_names_file_and_field() {
         "{stderr}"
     );
 }
+
+#[test]
+fn vessel8_rig_checks_out_with_its_force_budget() {
+    // The second rig: nothing in the code knows it. Its coils must push the capsule with at
+    // least 0.2 mN in every direction at the route's ends while holding a 5 mT field.
+    let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fieldmaps/rigs/vessel8.toml");
+    let out = Command::new(env!("CARGO_BIN_EXE_fieldgen"))
+        .args([
+            "rig-check",
+            "--field-mt",
+            "5",
+            "--min-force-mn",
+            "0.2",
+            "--rig",
+        ])
+        .arg(&rig)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for needle in [
+        "coils: 8",
+        "allocation: 8 coils",
+        "camera: 800x640 px Gray8",
+        "branch-outlet",
+        "flow conditions: 3",
+        "force budget at 5 mT",
+        "rig ok",
+    ] {
+        assert!(stdout.contains(needle), "{needle} missing from\n{stdout}");
+    }
+}

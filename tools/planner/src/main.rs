@@ -1,13 +1,15 @@
 //! `planner`: the paper's A* pipeline on the canal mask → a trajectory file.
 //!
-//! planner [--mask mask.png] [--start-mm X,Y] [--end-mm X,Y] [-o trajectory.toml]
-//!         [--scenario-template scenarios/default.toml] [--speed-mm-s 0.5]
+//! planner [--rig fieldmaps/rigs/paper.toml] [--mask mask.png] [--start-mm X,Y] [--end-mm X,Y]
+//!         [-o trajectory.toml] [--scenario-template scenarios/default.toml] [--speed-mm-s 0.5]
+//!
+//! The canal mask, its geometry and the default start and goal come from the rig file.
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
-use fieldmaps::phantom::{ImageGeometry, Phantom};
+use fieldmaps::rigfile::Rig;
 use millinav_planner::{
     geometry_for, plan, scenario_with_plan, trajectory_toml, Mask, PlannerConfig,
 };
@@ -16,17 +18,22 @@ use nalgebra::Vector2;
 #[derive(Parser, Debug)]
 #[command(about = "A* path planner (paper Sec. II-C): canal mask -> trajectory waypoints")]
 struct Args {
-    /// Canal mask image (white = canal). Default: the fieldmaps phantom rasterized on the
-    /// 1020x1020 px / 92 mm top view.
+    /// Rig file: canal mask, its geometry, default start and goal (`[phantom.route]`).
+    /// Default: the paper's rig.
+    #[arg(long, default_value_os_t = fieldmaps::rigfile::paper_rig_path())]
+    rig: PathBuf,
+    /// Canal mask image (white = canal) instead of the rig's. Same size as the rig's mask: the
+    /// rig's geometry; otherwise centred on the origin at --mm-per-px.
     #[arg(long)]
     mask: Option<PathBuf>,
-    /// mm per pixel of --mask (default: the top camera's 92/1020); the image is centred on the origin.
-    #[arg(long)]
+    /// mm per pixel of --mask (default: the rig's mask scale); the image is then centred on the
+    /// origin.
+    #[arg(long, requires = "mask")]
     mm_per_px: Option<f64>,
-    /// Start point "x,y" in mm (default: the phantom's default start).
+    /// Start point "x,y" in mm (default: the rig's `[phantom.route] start_mm`).
     #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
     start_mm: Option<[f64; 2]>,
-    /// End point "x,y" in mm (default: the phantom's default end).
+    /// End point "x,y" in mm (default: the rig's `[phantom.route] end_mm`).
     #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
     end_mm: Option<[f64; 2]>,
     /// Minimum wall clearance, mm.
@@ -77,22 +84,41 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let args = Args::parse();
-    let phantom = Phantom::default_heart();
+    let rig = Rig::load(&args.rig)?;
+    let rig_geom = *rig.phantom.mask.geometry();
     let (mask, geom) = match &args.mask {
         None => {
-            let geom = ImageGeometry::default();
-            (Mask::from_phantom(&phantom, &geom)?, geom)
+            let data = rig
+                .phantom
+                .mask
+                .canal_flags()
+                .iter()
+                .map(|&c| if c { 255 } else { 0 })
+                .collect();
+            (
+                Mask::new(rig_geom.width_px, rig_geom.height_px, data)?,
+                rig_geom,
+            )
         }
         Some(path) => {
             let mask = Mask::load(path)?;
-            let mpp = args.mm_per_px.unwrap_or(ImageGeometry::default().mm_per_px);
-            let geom = geometry_for(mask.width, mask.height, mpp);
+            let same_size = mask.width == rig_geom.width_px && mask.height == rig_geom.height_px;
+            let geom = match args.mm_per_px {
+                None if same_size => rig_geom,
+                mpp => geometry_for(mask.width, mask.height, mpp.unwrap_or(rig_geom.mm_per_px)),
+            };
             (mask, geom)
         }
     };
     let to_m = |p: [f64; 2]| Vector2::new(p[0], p[1]) * 1e-3;
-    let start = args.start_mm.map(to_m).unwrap_or(phantom.default_start());
-    let end = args.end_mm.map(to_m).unwrap_or(phantom.default_end());
+    let (start, end) = match (args.start_mm.map(to_m), args.end_mm.map(to_m), rig.phantom.route) {
+        (Some(s), Some(e), _) => (s, e),
+        (s, e, Some(route)) => (s.unwrap_or(route.start_m), e.unwrap_or(route.end_m)),
+        (_, _, None) => anyhow::bail!(
+            "{}: [phantom.route]: the rig gives no default start and goal; add one or give --start-mm and --end-mm",
+            args.rig.display()
+        ),
+    };
     let config = PlannerConfig {
         clearance_m: args.clearance_mm * 1e-3,
         w_clear: args.w_clear,

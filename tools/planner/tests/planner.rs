@@ -257,3 +257,60 @@ fn png_mask_roundtrip() {
     let _ = std::fs::remove_file(&path);
     assert_eq!(loaded, mask);
 }
+
+fn rig_file(name: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join(format!("../../fieldmaps/rigs/{name}.toml"))
+}
+
+#[test]
+fn plans_on_a_second_rig_from_its_route() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_planner"))
+        .args(["--clearance-mm", "3", "--rig"])
+        .arg(rig_file("vessel8"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // Default start and goal: the rig's [phantom.route].
+    assert!(
+        stdout.contains("start (-42.00, -19.90) mm -> end (24.00, -24.00) mm"),
+        "{stdout}"
+    );
+}
+
+#[test]
+fn rig_without_route_needs_start_and_end() {
+    // vessel8 without its [phantom.route], its data paths made absolute so the copy loads.
+    let rigs = rig_file("vessel8")
+        .parent()
+        .unwrap()
+        .canonicalize()
+        .unwrap();
+    let text = std::fs::read_to_string(rig_file("vessel8"))
+        .unwrap()
+        .replace("\"vessel8/", &format!("\"{}/vessel8/", rigs.display()));
+    let start = text.find("[phantom.route]").unwrap();
+    let end = start + text[start..].find("[[phantom.flow]]").unwrap();
+    let text = format!("{}{}", &text[..start], &text[end..]);
+    let dir = std::env::temp_dir().join(format!("millinav-planner-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let rig = dir.join("noroute.toml");
+    std::fs::write(&rig, text).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_planner"))
+        .arg("--rig")
+        .arg(&rig)
+        .output()
+        .unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains(&format!("{}: [phantom.route]", rig.display())),
+        "{stderr}"
+    );
+}

@@ -11,7 +11,7 @@ mod smc;
 use serde::{Deserialize, Serialize};
 
 pub use interface::{ControlInput, ControlTerms, Controller, NominalModel};
-pub use mpc::{Mpc, MpcGains};
+pub use mpc::{ForceSite, Mpc, MpcGains};
 pub use pid::{Pid, PidGains};
 pub use smc::{SmcDob, SmcGains};
 

@@ -17,9 +17,8 @@
 
 use clarabel::algebra::CscMatrix;
 use clarabel::solver::{DefaultSettings, DefaultSolver, IPSolver, NonnegativeConeT, SolverStatus};
-use fieldmaps::allocation::{actuation_matrix, allocate_pinv, DEFAULT_PLANAR_COILS};
-use fieldmaps::coils::CoilSystem;
-use fieldmaps::phantom::Phantom;
+use fieldmaps::allocation::{actuation_matrix_from, allocate_pinv};
+use fieldmaps::coils::CoilField;
 use fieldmaps::physics;
 use fieldmaps::rig::{CoilLimits, RobotParams};
 use nalgebra::{DMatrix, DVector, Vector2, Vector3};
@@ -113,13 +112,28 @@ impl MpcGains {
     }
 
     /// These gains with `max_force_n` filled in from the rig's current limits when unset.
-    pub fn resolved(&self, limits: &CoilLimits, field_t: &Vector2<f64>, omega0: f64) -> Self {
+    pub fn resolved(
+        &self,
+        site: &ForceSite<'_>,
+        limits: &CoilLimits,
+        field_t: &Vector2<f64>,
+        omega0: f64,
+    ) -> Self {
         let mut g = self.sanitized();
         if g.max_force_n.is_none() {
-            g.max_force_n = Some(estimate_max_force_n(limits, field_t, omega0));
+            g.max_force_n = Some(estimate_max_force_n(site, limits, field_t, omega0));
         }
         g
     }
+}
+
+/// Where and with what the force bound is estimated: the rig's coil model, the coils the
+/// allocation drives, the robot's magnet, and the points of the path to be followed.
+pub struct ForceSite<'a> {
+    pub coils: &'a dyn CoilField,
+    pub coil_ids: &'a [usize],
+    pub magnet_moment_am2: f64,
+    pub points_m: &'a [Vector2<f64>],
 }
 
 /// Fallback force bound when the estimate is degenerate (the paper's 0.37 mN at 0.43 T/m).
@@ -130,43 +144,38 @@ const FORCE_BOUND_DIRECTIONS: u32 = 16;
 /// Bisection steps on the force scale α ∈ [0, 1]: 60 halvings reach the f64 resolution of α.
 const FORCE_BOUND_BISECTION_STEPS: u32 = 60;
 
-/// Largest force magnitude the 8 planar coils can produce in *every* direction while also
+/// Largest force magnitude the allocation's coils can produce in *every* direction while also
 /// holding the orientation field `field_t`, within `limits` (per-coil current and total power),
-/// taken as the minimum over 16 directions and a few canal points (default start and end, the
-/// narrowing, the ventricle). Uses the same pseudo-inverse allocation as the control loop: for
+/// taken as the minimum over 16 directions and the site's points (the path's waypoints). Uses the same pseudo-inverse allocation as the control loop: for
 /// each direction d the currents are I(α) = pinv(A)·[α d, ω0 B], and the largest feasible α is
 /// found by bisection (the feasible set of α is an interval containing 0 when the field alone
 /// is feasible).
-pub fn estimate_max_force_n(limits: &CoilLimits, field_t: &Vector2<f64>, omega0: f64) -> f64 {
+pub fn estimate_max_force_n(
+    site: &ForceSite<'_>,
+    limits: &CoilLimits,
+    field_t: &Vector2<f64>,
+    omega0: f64,
+) -> f64 {
     if limits.validate().is_err() || !(omega0.is_finite() && omega0 > 0.0) {
         return FALLBACK_MAX_FORCE_N;
     }
     if !(field_t.x.is_finite() && field_t.y.is_finite()) {
         return FALLBACK_MAX_FORCE_N;
     }
-    let coils = CoilSystem::paper_rig();
-    let robot = RobotParams::default();
-    let phantom = Phantom::default_heart();
     let heading = if field_t.norm() > 0.0 {
         field_t.y.atan2(field_t.x)
     } else {
         std::f64::consts::FRAC_PI_4
     };
-    let moment = physics::in_plane_moment(robot.magnet_moment_am2, heading);
-    let points = [
-        phantom.default_start(),
-        phantom.default_end(),
-        Vector2::new(-0.005, -0.0075),
-        Vector2::new(0.004, -0.024),
-    ];
+    let moment = physics::in_plane_moment(site.magnet_moment_am2, heading);
     let feasible = |i: &DVector<f64>| {
         i.amax() <= limits.max_current_a
             && i.norm_squared() * limits.coil_resistance_ohm <= limits.max_total_power_w
     };
     let mut best = f64::INFINITY;
-    for p in points {
+    for p in site.points_m {
         let p3 = Vector3::new(p.x, p.y, 0.0);
-        let a = actuation_matrix(&coils, &p3, &moment, &DEFAULT_PLANAR_COILS, omega0);
+        let a = actuation_matrix_from(site.coils, &p3, &moment, site.coil_ids, omega0);
         let field_rhs = DVector::from_vec(vec![0.0, 0.0, omega0 * field_t.x, omega0 * field_t.y]);
         let Ok(i_field) = allocate_pinv(&a, &field_rhs) else {
             continue;
@@ -618,8 +627,21 @@ mod tests {
 
     #[test]
     fn force_estimate_is_physical() {
+        let rig = fieldmaps::rigfile::Rig::load_paper().unwrap();
+        let points = [
+            Vector2::new(-0.016, 0.012),
+            Vector2::new(-0.006, -0.006),
+            Vector2::new(0.004, -0.024),
+        ];
+        let site = ForceSite {
+            coils: &rig.coil_field,
+            coil_ids: &rig.allocation_coils,
+            magnet_moment_am2: rig.robot.magnet_moment_am2,
+            points_m: &points,
+        };
         let f = estimate_max_force_n(
-            &CoilLimits::default(),
+            &site,
+            &rig.coil_limits(),
             &(Vector2::new(1e-3, 1e-3) * std::f64::consts::FRAC_1_SQRT_2),
             0.05,
         );

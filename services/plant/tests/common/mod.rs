@@ -3,8 +3,8 @@
 
 use fieldmaps::coils::{CoilSystem, COIL_COUNT};
 use fieldmaps::flowmap::FlowMap;
-use fieldmaps::phantom::Phantom;
 use fieldmaps::rig::{FluidParams, RobotParams};
+use fieldmaps::rigfile::Rig;
 use millinav_plant::model::{PlantModel, PlantPhysicsConfig};
 use nalgebra::Vector2;
 
@@ -43,7 +43,7 @@ pub fn model(flow: FlowMap, config: PlantPhysicsConfig, seed: u64) -> PlantModel
         CoilSystem::paper_rig(),
         RobotParams::default(),
         &fluid(),
-        Phantom::default_heart(),
+        &Rig::load_paper().unwrap().phantom,
         flow,
         config,
         seed,

@@ -6,8 +6,9 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
-use fieldmaps::phantom::{ImageGeometry, Phantom};
+use fieldmaps::phantom::ImageGeometry;
 use fieldmaps::rig::RobotParams;
+use fieldmaps::rigfile::Rig;
 use indicatif::{ProgressBar, ProgressStyle};
 use millinav_plant::render::Camera;
 use millinav_roi::dataset::{Label, Split};
@@ -35,11 +36,18 @@ struct Args {
     /// Cameras (background textures and noise levels) per split.
     #[arg(long, default_value_t = 6)]
     cameras: usize,
+    /// Rig file: camera, phantom and capsule (default: the paper's, fieldmaps/rigs/paper.toml).
+    #[arg(long)]
+    rig: Option<PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let phantom = Phantom::default_heart();
+    let rig_path = args
+        .rig
+        .clone()
+        .unwrap_or_else(fieldmaps::rigfile::paper_rig_path);
+    let rig = Rig::load(&rig_path)?;
     for (offset, (name, count)) in [
         ("train", args.train),
         ("val", args.val),
@@ -52,7 +60,7 @@ fn main() -> anyhow::Result<()> {
             continue;
         }
         let split = export_split(
-            &phantom,
+            &rig,
             count,
             args.seed + offset as u64,
             args.cameras.max(1),
@@ -68,15 +76,15 @@ fn main() -> anyhow::Result<()> {
 }
 
 /// A random pose with the whole capsule inside the canal.
-fn random_pose(
-    phantom: &Phantom,
-    rng: &mut ChaCha8Rng,
-    robot: &RobotParams,
-) -> (Vector2<f64>, f64) {
+fn random_pose(rig: &Rig, rng: &mut ChaCha8Rng, robot: &RobotParams) -> (Vector2<f64>, f64) {
+    // Anywhere in the camera's view (the wall test below keeps the capsule in the canal).
+    let g = &rig.camera.geometry;
+    let top_left = g.px_to_world(0.0, 0.0);
+    let bottom_right = g.px_to_world(f64::from(g.width_px - 1), f64::from(g.height_px - 1));
     loop {
         let p = Vector2::new(
-            rng.random_range(-0.044..0.044),
-            rng.random_range(-0.044..0.044),
+            rng.random_range(top_left.x..bottom_right.x),
+            rng.random_range(bottom_right.y..top_left.y),
         );
         let heading: f64 = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
         let axis = Vector2::new(heading.cos(), heading.sin());
@@ -84,7 +92,7 @@ fn random_pose(
         let margin = -robot.radius_m();
         if [p - axis * half, p, p + axis * half]
             .iter()
-            .all(|q| phantom.signed_distance(q) < margin)
+            .all(|q| rig.phantom.walls.signed_distance(q) < margin)
         {
             return (p, heading);
         }
@@ -162,16 +170,16 @@ fn blur_region(frame: &mut [u8], width: usize, height: usize, crop: &Crop, w: f3
 }
 
 fn export_split(
-    phantom: &Phantom,
+    rig: &Rig,
     count: usize,
     seed: u64,
     cameras: usize,
     name: &str,
 ) -> anyhow::Result<Split> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let geometry = ImageGeometry::default();
+    let geometry = rig.camera.geometry;
     let (width, height) = (geometry.width_px as usize, geometry.height_px as usize);
-    let robot = RobotParams::default();
+    let robot = rig.robot.clone();
     let bar = ProgressBar::new((cameras + count) as u64).with_style(
         ProgressStyle::with_template("{msg:>6} [{bar:40}] {pos}/{len} {eta}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
@@ -180,7 +188,7 @@ fn export_split(
     let cams: Vec<Camera> = (0..cameras)
         .map(|_| {
             let noise = rng.random_range(1.0..8.0);
-            let cam = Camera::new(phantom, geometry, &mut rng, noise);
+            let cam = Camera::new(&rig.phantom.mask, geometry, &mut rng, noise);
             bar.inc(1);
             cam
         })
@@ -191,7 +199,7 @@ fn export_split(
     let (mut image_out, mut mask_out) = (Vec::new(), Vec::new());
     for _ in 0..count {
         let cam = &cams[rng.random_range(0..cams.len())];
-        let (position, heading) = random_pose(phantom, &mut rng, &robot);
+        let (position, heading) = random_pose(rig, &mut rng, &robot);
         frame.copy_from_slice(cam.background(rng.random_range(0..4)));
         cam.draw_capsule(
             &mut frame,
@@ -211,7 +219,7 @@ fn export_split(
                 keypoints.centroid_px.1 + rng.random_range(-jitter..jitter),
             )
         } else {
-            let (elsewhere, _) = random_pose(phantom, &mut rng, &robot);
+            let (elsewhere, _) = random_pose(rig, &mut rng, &robot);
             if (elsewhere - position).norm() < 0.02 {
                 continue;
             }
