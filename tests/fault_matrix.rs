@@ -28,8 +28,16 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use shm_schemas::deadlines;
 
-/// Per-coil limit the Teensy must never see exceeded (fieldmaps' default coil limit).
-const MAX_CURRENT_A: f64 = 6.0 + 1e-3;
+/// The largest per-coil current limit of the rig at `rig` (repository-relative), plus the
+/// Teensy's mA quantisation: what the board must never see exceeded.
+fn max_current_a(rig: &str) -> f64 {
+    let rig = fieldmaps::rigfile::Rig::load(&fieldmaps::data_root().join(rig)).expect("rig file");
+    rig.coils
+        .iter()
+        .map(|c| c.max_current_a)
+        .fold(0.0, f64::max)
+        + 1e-3
+}
 
 /// A circle in the right atrium: the robot stays in the canal however long the run is.
 fn circle_scenario(duration_s: f64, seed: u64) -> String {
@@ -237,7 +245,7 @@ fn inject(run: &RunSet, fault: Fault) -> FaultOutcome {
     }
 }
 
-fn assert_invariants(run: &RunSet, teensy: &[TeensyEvent]) {
+fn assert_invariants(run: &RunSet, teensy: &[TeensyEvent], max_current_a: f64) {
     let mut last_seq = None;
     for e in teensy.iter().filter(|e| e.kind == "command") {
         if let (Some(prev), Some(seq)) = (last_seq, e.frame_seq) {
@@ -248,7 +256,7 @@ fn assert_invariants(run: &RunSet, teensy: &[TeensyEvent]) {
         }
         last_seq = e.frame_seq.or(last_seq);
         assert!(
-            e.max_abs_current_a <= MAX_CURRENT_A,
+            e.max_abs_current_a <= max_current_a,
             "limit violated: {} A at the Teensy",
             e.max_abs_current_a
         );
@@ -273,7 +281,32 @@ fn quantiles(values: &mut [f64]) -> (f64, f64) {
 
 #[test]
 fn every_service_killed_and_hung_in_turn() {
-    let mut run = RunSet::start("faultmatrix", &circle_scenario(150.0, 5)).expect("start");
+    fault_matrix(
+        "faultmatrix",
+        &circle_scenario(150.0, 5),
+        max_current_a("fieldmaps/rigs/paper.toml"),
+    );
+}
+
+/// The same matrix on the second committed rig (8-coil ring, branched vessel), along its
+/// planner path in still fluid: nothing in the fault handling knows which rig it drives.
+#[test]
+fn every_service_killed_and_hung_in_turn_on_the_second_rig() {
+    let text = millinav_tests::vessel8_scenario_text(
+        60.0,
+        false,
+        "\n[vision]\nlocalizer = \"classical\"\n",
+    )
+    .replace("viscosity_cp = 4.3", "viscosity_cp = 20.0");
+    fault_matrix(
+        "faultmatrix8",
+        &text,
+        max_current_a("fieldmaps/rigs/vessel8.toml"),
+    );
+}
+
+fn fault_matrix(name: &str, scenario: &str, max_current_a: f64) {
+    let mut run = RunSet::start(name, scenario).expect("start");
     assert!(
         wait_tracking(&run, 0, 100, Duration::from_secs(60)),
         "loop never started"
@@ -306,13 +339,13 @@ fn every_service_killed_and_hung_in_turn() {
         "the run did not complete"
     );
     let teensy = run.teensy_events().expect("teensy");
-    assert_invariants(&run, &teensy);
+    assert_invariants(&run, &teensy, max_current_a);
 
     let mut by_service: BTreeMap<&str, Vec<&FaultOutcome>> = BTreeMap::new();
     for o in &outcomes {
         by_service.entry(o.service).or_default().push(o);
     }
-    println!("\n| service | faults | detection ms (median / max) | time to safe ms (median / max) | bound ms | time to resume ms (median / max) |");
+    println!("\n{name}:\n| service | faults | detection ms (median / max) | time to safe ms (median / max) | bound ms | time to resume ms (median / max) |");
     println!("|---|---|---|---|---|---|");
     for (service, list) in &by_service {
         let (d50, dmax) = quantiles(&mut list.iter().map(|o| o.detection_ms).collect::<Vec<_>>());
@@ -382,7 +415,7 @@ fn soak_random_kills() {
     let status = run.stop(Duration::from_secs(30)).expect("supervisor stops");
     assert!(status.success(), "supervisor exit {status}");
     let teensy = run.teensy_events().expect("teensy");
-    assert_invariants(&run, &teensy);
+    assert_invariants(&run, &teensy, max_current_a("fieldmaps/rigs/paper.toml"));
 }
 
 #[test]

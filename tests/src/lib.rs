@@ -404,6 +404,32 @@ pub fn scenario_text(
     )
 }
 
+/// The committed second rig's scenario (`scenarios/vessel8.toml`: 8-coil ring, branched vessel)
+/// with its relative paths made absolute (so it can be written anywhere), `duration_s` set, and
+/// `extra` tables appended. `flow = false` runs it in still fluid.
+pub fn vessel8_scenario_text(duration_s: f64, flow: bool, extra: &str) -> String {
+    let root = fieldmaps::data_root();
+    let text = std::fs::read_to_string(root.join("scenarios/vessel8.toml"))
+        .expect("scenarios/vessel8.toml");
+    let flow_dir = root.join("fieldmaps/rigs/vessel8/flow");
+    let mut out = String::new();
+    for line in text.lines() {
+        if line.starts_with("duration_s") {
+            out.push_str(&format!("duration_s = {duration_s}\n"));
+        } else if line.starts_with("map = ") {
+            if flow {
+                let file = line.rsplit('/').next().unwrap_or("").trim_end_matches('"');
+                out.push_str(&format!("map = {:?}\n", flow_dir.join(file)));
+            }
+        } else {
+            out.push_str(line);
+            out.push('\n');
+        }
+    }
+    out.push_str(extra);
+    out
+}
+
 /// One cell of the paper's matrix built from `scenarios/paper.toml` (after `adjust`, e.g. a
 /// shorter run or another frame period), ready to run in either mode and to score.
 pub struct PaperCell {
