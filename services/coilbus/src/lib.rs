@@ -499,8 +499,13 @@ mod tests {
         cmd
     }
 
+    /// The committed paper rig's limits.
+    fn paper_limits() -> CurrentLimits {
+        CurrentLimits::from_rig(&fieldmaps::rigfile::Rig::load_paper().unwrap())
+    }
+
     fn bus() -> CoilBus {
-        CoilBus::new(CurrentLimits::default(), Duration::from_millis(100), COILS)
+        CoilBus::new(paper_limits(), Duration::from_millis(100), COILS)
     }
 
     #[test]
@@ -526,7 +531,7 @@ mod tests {
 
     #[test]
     fn a_started_coilbus_zeroes_the_board_before_any_command() {
-        let mut bus = CoilBus::new(CurrentLimits::default(), Duration::from_millis(100), COILS);
+        let mut bus = CoilBus::new(paper_limits(), Duration::from_millis(100), COILS);
         let zero = bus
             .start_zero()
             .expect("a fresh coilbus starts with a zero");
@@ -564,7 +569,7 @@ mod tests {
 
     #[test]
     fn limits_clamp_even_wild_and_nan_commands() {
-        let limits = CurrentLimits::default();
+        let limits = paper_limits();
         let mut bus = CoilBus::new(limits.clone(), Duration::from_millis(100), COILS);
         let mut wild = command(1, 0, 1e6);
         wild.currents_a[3] = f64::NAN;

@@ -49,18 +49,6 @@ impl CurrentLimits {
     }
 }
 
-impl Default for CurrentLimits {
-    /// The paper rig's rating ([`fieldmaps::rig::CoilLimits`]) for every coil.
-    fn default() -> Self {
-        let rig = fieldmaps::rig::CoilLimits::default();
-        Self::uniform(
-            rig.max_current_a,
-            rig.coil_resistance_ohm,
-            rig.max_total_power_w,
-        )
-    }
-}
-
 /// Non-finite entries become zero, each coil is clipped to its limit, then all are scaled
 /// together to respect the total power. Returns the currents (the first `requested.len()`
 /// entries, at most `MAX_COILS`; the rest zero) and whether anything changed.

@@ -172,7 +172,7 @@ impl ControlLoop {
         incarnation: u64,
         rig: Arc<Rig>,
     ) -> Self {
-        let robot = rig.robot.clone();
+        let robot = rig.robot;
         let model = NominalModel {
             mass_kg: robot.mass_kg,
             linear_drag_n_s_per_m: physics::translational_damping(

@@ -123,7 +123,7 @@ fn load_model(
         .config_context(format!("scenario {}: [flow] map", scenario.path.display()))?;
     Ok(PlantModel::new(
         rig.twin_coil_field.clone(),
-        rig.robot.clone(),
+        rig.robot,
         &fluid,
         &rig.phantom,
         steady_flow,

@@ -13,11 +13,12 @@ pub struct CapsuleSize {
     pub diameter_m: f64,
 }
 
-impl Default for CapsuleSize {
-    fn default() -> Self {
+impl CapsuleSize {
+    /// The rig's capsule (`[robot]` of the rig file).
+    pub fn of(robot: &fieldmaps::rig::RobotParams) -> Self {
         Self {
-            length_m: 7.4e-3,
-            diameter_m: 2.8e-3,
+            length_m: robot.length_m,
+            diameter_m: robot.diameter_m,
         }
     }
 }

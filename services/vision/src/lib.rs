@@ -99,10 +99,7 @@ pub struct FrameResult {
 impl Pipeline {
     /// The pipeline for `rig`'s capsule seen by `rig`'s camera.
     pub fn new(config: &VisionConfig, scenario: &Scenario, rig: &Rig) -> Result<Self, UnetError> {
-        let size = CapsuleSize {
-            length_m: rig.robot.length_m,
-            diameter_m: rig.robot.diameter_m,
-        };
+        let size = CapsuleSize::of(&rig.robot);
         let unet = match config.localizer {
             LocalizerKind::Classical => None,
             LocalizerKind::Unet => {

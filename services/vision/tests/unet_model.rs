@@ -30,7 +30,7 @@ fn float_model_it_was_quantized_from_meets_accuracy_floors() {
 fn meets_accuracy_floors(model: &str) {
     let split = Split::load(&root().join("tools/unet/testset")).expect("committed test set");
     let mut unet = load(&root().join(model)).expect("committed model loads");
-    let size = CapsuleSize::default();
+    let size = CapsuleSize::of(&fieldmaps::rigfile::Rig::load_paper().unwrap().robot);
     let expected = size.length_m * 1e3 / split.labels[0].mm_per_px / 2.0;
     let report = evaluate_unet(&mut unet, &split, expected);
     println!("{}", table(std::slice::from_ref(&report)));

@@ -43,7 +43,7 @@ fn localizers(c: &mut Criterion) {
     let Ok(scene) = vision::Scene::render(0) else {
         return;
     };
-    let classical = vision::classical();
+    let classical = vision::classical(&scene);
     let (w, h) = (scene.width as i32, scene.height as i32);
     let roi = scene.roi(20.0);
     c.bench_function("vision/classical_roi", |b| {

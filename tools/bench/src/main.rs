@@ -254,7 +254,7 @@ fn ipc_rows(
 
 fn vision_rows(cli: &Cli, scene: &vision::Scene) -> anyhow::Result<Vec<Row>> {
     let n = cli.frame_iters;
-    let classical = vision::classical();
+    let classical = vision::classical(scene);
     let mut rows = Vec::new();
     let full = scene.full();
     let roi = scene.roi(20.0);

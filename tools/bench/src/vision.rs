@@ -18,6 +18,8 @@ pub struct Scene {
     pub height: usize,
     pub mm_per_px: f64,
     pub centroid_px: (f64, f64),
+    /// The rig's capsule.
+    pub capsule: CapsuleSize,
 }
 
 impl Scene {
@@ -49,6 +51,7 @@ impl Scene {
             height: geometry.height_px as usize,
             mm_per_px: geometry.mm_per_px,
             centroid_px: geometry.world_to_px(&position),
+            capsule: CapsuleSize::of(&rig.robot),
         })
     }
 
@@ -66,8 +69,8 @@ impl Scene {
     }
 }
 
-pub fn classical() -> ClassicalLocalizer {
-    ClassicalLocalizer::new(CapsuleSize::default())
+pub fn classical(scene: &Scene) -> ClassicalLocalizer {
+    ClassicalLocalizer::new(scene.capsule)
 }
 
 /// The committed ROI UNet with the venv's ONNX Runtime (single intra-op thread, as in vision).
@@ -77,7 +80,7 @@ pub fn unet(scene: &Scene) -> Result<UnetLocalizer, BenchError> {
     UnetLocalizer::load(
         &model,
         &runtime,
-        CapsuleSize::default().length_m * 1e3,
+        scene.capsule.length_m * 1e3,
         scene.mm_per_px,
     )
     .map_err(|e| BenchError::Setup(e.to_string()))

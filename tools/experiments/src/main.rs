@@ -242,7 +242,7 @@ fn run_cell(
     let m = metrics(
         &trace,
         &reference,
-        fieldmaps::rig::CoilLimits::default().coil_resistance_ohm,
+        scenario.rig()?.coil_limits().coil_resistance_ohm,
     );
     Ok((trace, m, t0.elapsed().as_secs_f64()))
 }
@@ -323,8 +323,14 @@ fn write_figures(
             v as f64 / 10.0,
             flow.replace([' ', '/'], "")
         );
-        report::traces_figure(&runs, &reference, &title, &args.out.join(file))
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        report::traces_figure(
+            &runs,
+            &reference,
+            &base.rig()?.phantom.mask,
+            &title,
+            &args.out.join(file),
+        )
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     }
     Ok(())
 }

@@ -384,6 +384,7 @@ pub fn metric_bars(
 pub fn traces_figure(
     traces: &[(String, Vec<TraceRow>)],
     reference: &millinav_control::reference::Reference,
+    canal: &fieldmaps::mask::CanalMask,
     title: &str,
     path: &Path,
 ) -> Res {
@@ -409,8 +410,7 @@ pub fn traces_figure(
         .x_desc("x (mm)")
         .y_desc("y (mm)")
         .draw()?;
-    // The phantom's canal underneath, as the camera sees it from the top.
-    let phantom = fieldmaps::phantom::Phantom::default_heart();
+    // The rig's canal underneath, as the camera sees it from the top.
     let cell_mm = 0.5;
     let canal: Vec<Rectangle<(f64, f64)>> = (0..((x1 - x0 + 2.0 * pad) / cell_mm) as usize)
         .flat_map(|i| {
@@ -418,7 +418,7 @@ pub fn traces_figure(
                 .map(move |j| (x0 - pad + i as f64 * cell_mm, y0 - pad + j as f64 * cell_mm))
         })
         .filter(|&(x, y)| {
-            phantom.contains(&nalgebra::Vector2::new(
+            canal.contains(&nalgebra::Vector2::new(
                 (x + 0.5 * cell_mm) * 1e-3,
                 (y + 0.5 * cell_mm) * 1e-3,
             ))

@@ -20,7 +20,7 @@ use clarabel::solver::{DefaultSettings, DefaultSolver, IPSolver, NonnegativeCone
 use fieldmaps::allocation::{actuation_matrix_from, allocate_pinv};
 use fieldmaps::coils::CoilField;
 use fieldmaps::physics;
-use fieldmaps::rig::{CoilLimits, RobotParams};
+use fieldmaps::rig::CoilLimits;
 use nalgebra::{DMatrix, DVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -135,6 +135,9 @@ pub struct ForceSite<'a> {
     pub magnet_moment_am2: f64,
     pub points_m: &'a [Vector2<f64>],
 }
+
+/// Mass the model falls back to when its own is not finite and positive, kg.
+const MIN_MASS_KG: f64 = 1e-9;
 
 /// Fallback force bound when the estimate is degenerate (the paper's 0.37 mN at 0.43 T/m).
 pub const FALLBACK_MAX_FORCE_N: f64 = 3.7e-4;
@@ -284,10 +287,11 @@ impl Mpc {
         let max_force_n = gains.max_force_n.unwrap_or(FALLBACK_MAX_FORCE_N);
         let n = gains.horizon;
         let dt = gains.step_ms * 1e-3;
+        // A non-physical mass becomes a negligible one: drag alone then sets the dynamics.
         let mass = if model.mass_kg.is_finite() && model.mass_kg > 0.0 {
             model.mass_kg
         } else {
-            RobotParams::default().mass_kg
+            MIN_MASS_KG
         };
         let drag = if model.linear_drag_n_s_per_m.is_finite() {
             model.linear_drag_n_s_per_m.max(0.0)

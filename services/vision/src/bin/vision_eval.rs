@@ -22,13 +22,21 @@ struct Args {
     /// libonnxruntime.so (default: ORT_DYLIB_PATH, then the project venv).
     #[arg(long)]
     onnxruntime: Option<PathBuf>,
+    /// Rig file whose capsule the split shows (default: the paper's, fieldmaps/rigs/paper.toml).
+    #[arg(long)]
+    rig: Option<PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let split =
         Split::load(&args.split).with_context(|| format!("loading {}", args.split.display()))?;
-    let size = CapsuleSize::default();
+    let rig_path = args
+        .rig
+        .clone()
+        .unwrap_or_else(fieldmaps::rigfile::paper_rig_path);
+    let rig = fieldmaps::rigfile::Rig::load(&rig_path)?;
+    let size = CapsuleSize::of(&rig.robot);
     let mm_per_px = split
         .labels
         .first()

@@ -179,7 +179,7 @@ fn export_split(
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let geometry = rig.camera.geometry;
     let (width, height) = (geometry.width_px as usize, geometry.height_px as usize);
-    let robot = rig.robot.clone();
+    let robot = rig.robot;
     let bar = ProgressBar::new((cameras + count) as u64).with_style(
         ProgressStyle::with_template("{msg:>6} [{bar:40}] {pos}/{len} {eta}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),

@@ -1,0 +1,99 @@
+//! No paper constant in a service's code path: every service reads its rig (coils, camera,
+//! phantom, robot, zones, limits) from the scenario's rig file. This greps the services'
+//! sources (outside `#[cfg(test)]` modules) for the names and numbers that used to weld them
+//! to the paper's rig. Defaults that a file overrides live in `fieldmaps` (the paper rig's
+//! path, the parametric phantom used to draw `paper/heart_mask.png`), not in services.
+
+use std::path::{Path, PathBuf};
+
+/// Names of the paper's rig in code, and its numbers as they were written there.
+const FORBIDDEN: &[(&str, &str)] = &[
+    ("paper_rig()", "the paper's coil layout in code"),
+    ("default_heart()", "the paper's parametric phantom"),
+    (
+        "Phantom::",
+        "a parametric phantom instead of the rig's mask",
+    ),
+    ("FRAME_FIELD_OF_VIEW_MM", "the paper camera's field of view"),
+    ("FRAME_WIDTH", "the paper camera's width"),
+    ("FRAME_HEIGHT", "the paper camera's height"),
+    ("COIL_COUNT", "the paper's 12 coils"),
+    ("DEFAULT_PLANAR_COILS", "the paper's 8 allocation coils"),
+    ("ALL_COILS", "the paper's 12 coil indices"),
+    ("_Y_RANGE_M", "the paper's zone bands"),
+    ("ImageGeometry::default()", "the paper camera's geometry"),
+    ("RobotParams::default()", "the paper's capsule"),
+    ("CoilLimits::default()", "the paper's coil ratings"),
+    ("CapsuleSize::default()", "the paper's capsule size"),
+    ("load_default()", "the paper's committed coil maps"),
+    ("load_paper()", "the paper's rig file"),
+    ("1020", "the paper camera's 1020 px"),
+    ("92.0", "the paper camera's 92 mm"),
+    ("7.4e-3", "the paper capsule's length"),
+    ("2.8e-3", "the paper capsule's diameter"),
+    ("8.6e-4", "the paper magnet's moment"),
+    ("-14.0, 2.5", "the paper's vortex centre"),
+];
+
+fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let path = entry.path();
+        if path.is_dir() {
+            rust_files(&path, out);
+        } else if path.extension().is_some_and(|e| e == "rs") {
+            out.push(path);
+        }
+    }
+}
+
+#[test]
+fn services_name_no_paper_constant() {
+    let services = fieldmaps::data_root().join("services");
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(&services).expect("services/").flatten() {
+        rust_files(&entry.path().join("src"), &mut files);
+    }
+    assert!(
+        files.len() > 20,
+        "found only {} service sources",
+        files.len()
+    );
+    let mut hits = Vec::new();
+    for file in &files {
+        let text = std::fs::read_to_string(file).expect("readable source");
+        // Unit tests may use the committed paper rig as their fixture.
+        let code = text.split("#[cfg(test)]").next().unwrap_or("");
+        for (line_no, line) in code.lines().enumerate() {
+            let line = line.split("//").next().unwrap_or("");
+            for (pattern, what) in FORBIDDEN {
+                if line.contains(pattern) {
+                    hits.push(format!(
+                        "{}:{}: `{pattern}` ({what})",
+                        file.strip_prefix(&services).unwrap_or(file).display(),
+                        line_no + 1
+                    ));
+                }
+            }
+        }
+    }
+    assert!(
+        hits.is_empty(),
+        "services name the paper's rig; the rig file should say it:\n{}",
+        hits.join("\n")
+    );
+}
+
+#[test]
+fn the_grep_finds_what_it_looks_for() {
+    // The scan would pass vacuously if the patterns never matched real code.
+    let sample = "let c = CoilSystem::paper_rig(); let w = 1020;";
+    let found: Vec<&str> = FORBIDDEN
+        .iter()
+        .map(|(p, _)| *p)
+        .filter(|p| sample.contains(p))
+        .collect();
+    assert_eq!(found, ["paper_rig()", "1020"]);
+}
