@@ -16,7 +16,12 @@ const GIVE_UP_AFTER: Duration = Duration::from_secs(60);
 /// Runs `extra` (scenario tables) and checks the run was refused with `expected` on the console.
 fn refused(name: &str, extra: &str, expected: &[&str]) {
     let text = scenario_text(2.0, &[[-18.0, 12.0], [-12.0, 8.0]], 2.0, extra);
-    let mut run = RunSet::start(name, &text).expect("start millinav run");
+    refused_text(name, &text, expected);
+}
+
+/// Runs the scenario `text` and checks the run was refused with `expected` on the console.
+fn refused_text(name: &str, text: &str, expected: &[&str]) {
+    let mut run = RunSet::start(name, text).expect("start millinav run");
     let status = run.wait(GIVE_UP_AFTER).expect("the supervisor exits");
     let console = run.supervisor_console().expect("console");
     assert_eq!(
@@ -113,4 +118,39 @@ fn a_missing_flow_map_is_refused() {
     let map = map_file("missing.csv", None);
     let file_name = map.file_name().and_then(|n| n.to_str()).expect("name");
     refused("missingmap", &flow_map_table(&map), &[file_name]);
+}
+
+/// The second committed rig with its data paths made absolute, one value replaced, written
+/// where a scenario can name it.
+fn broken_rig(name: &str, from: &str, to: &str) -> std::path::PathBuf {
+    let rigs = fieldmaps::data_root().join("fieldmaps/rigs");
+    let text = std::fs::read_to_string(rigs.join("vessel8.toml"))
+        .expect("vessel8.toml")
+        .replace(
+            "\"vessel8/",
+            &format!("\"{}/", rigs.join("vessel8").display()),
+        );
+    assert!(text.contains(from), "vessel8.toml has no {from:?}");
+    let path = std::env::temp_dir().join(format!(
+        "millinav-badrig-{}-{name}.toml",
+        std::process::id()
+    ));
+    std::fs::write(&path, text.replacen(from, to, 1)).expect("write rig");
+    path
+}
+
+#[test]
+fn a_bad_rig_file_is_refused_before_anything_starts() {
+    let rig = broken_rig("zeroturns", "turns = ", "turns = 0.0 # ");
+    let text = millinav_tests::vessel8_scenario_text(2.0, false, "").replace(
+        "rig = \"fieldmaps/rigs/vessel8.toml\"",
+        &format!("rig = {:?}", rig),
+    );
+    let file = rig
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or_default()
+        .to_owned();
+    refused_text("badrig", &text, &[&file, "coils[0].turns"]);
+    let _ = std::fs::remove_file(&rig);
 }

@@ -444,7 +444,7 @@ impl PaperCell {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
         let mut base = Scenario::load(&root.join("scenarios/paper.toml")).expect("paper scenario");
         adjust(&mut base);
-        let text = millinav_experiments::cell_scenario(&base, cell, &root).expect("cell scenario");
+        let text = millinav_experiments::cell_scenario(&base, cell).expect("cell scenario");
         let scenario =
             Scenario::parse(&text, &root.join("scenarios/cell.toml")).expect("parse cell");
         let reference = millinav_experiments::reference_of(&scenario).expect("reference");

@@ -531,6 +531,9 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
 /// finds every executable.
 fn plan(options: &SupervisorOptions) -> anyhow::Result<Plan> {
     let scenario = Scenario::load(&options.scenario)?;
+    // One clear error for a bad rig file, before five services each report it.
+    let rig = scenario.rig()?;
+    tracing::info!(rig = %rig.name, path = %rig.path.display(), coils = rig.coils.len(), "rig");
     std::fs::create_dir_all(&options.run_dir)
         .with_context(|| format!("creating the run directory {}", options.run_dir.display()))?;
     Ok(Plan {

@@ -62,7 +62,8 @@ fn main() -> ExitCode {
             eprintln!("Error: {error:#}");
             let config_error = error.downcast_ref::<FailFast>().is_some()
                 || error.downcast_ref::<ScenarioError>().is_some()
-                || error.downcast_ref::<LaunchError>().is_some();
+                || error.downcast_ref::<LaunchError>().is_some()
+                || millinav_kit::config::is_config_error(&error);
             if config_error {
                 ExitCode::from(EXIT_CONFIG)
             } else {

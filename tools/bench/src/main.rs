@@ -469,7 +469,10 @@ fn experiments_rows(cli: &Cli, bin_dir: &std::path::Path, work: &std::path::Path
     }
     // The README's matrix commands (10 Hz and 100 Hz), and through the process set one
     // full-length cell of each, or the whole 10 Hz matrix.
-    let cells = millinav_experiments::paper_matrix(3, true).len();
+    let cells = match control::paper_rig() {
+        Ok(rig) => millinav_experiments::rig_matrix(&rig, 3, true).len(),
+        Err(e) => return vec![Row::text("experiments", "paper rig", e.to_string())],
+    };
     let run = |label: &str, args: &[&str]| -> Result<f64, String> {
         let t = std::time::Instant::now();
         let status = std::process::Command::new(&exe)

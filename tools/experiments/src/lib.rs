@@ -12,6 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context};
+use fieldmaps::rigfile::Rig;
 use millinav_coilbus::protocol::{amps_to_ma, ma_to_amps};
 use millinav_coilbus::CoilBus;
 use millinav_control::reference::Reference;
@@ -25,34 +26,60 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use shm_schemas::{deadlines, Flag, FrameStamp, Pose, PoseSource, MAX_COILS};
 
-/// Flow settings of the paper.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+/// The flow of a cell: still fluid, or one of the rig's `[[phantom.flow]]` conditions by its
+/// pump flow rate (at the cell's viscosity).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum FlowSetting {
     Static,
-    /// 180 mL/min, peak ≈ 7 cm/s.
-    Q180,
-    /// 250 mL/min, peak ≈ 10 cm/s.
-    Q250,
+    /// Pump flow rate, mL/min (whole numbers).
+    Flow(u32),
 }
 
 impl FlowSetting {
-    pub fn label(self) -> &'static str {
+    /// The paper's lower pump setting: 180 mL/min, peak ≈ 7 cm/s.
+    pub const Q180: FlowSetting = FlowSetting::Flow(180);
+    /// The paper's higher pump setting: 250 mL/min, peak ≈ 10 cm/s.
+    pub const Q250: FlowSetting = FlowSetting::Flow(250);
+
+    /// How tables and figure names call it. The paper names its two pump settings by their
+    /// peak speed; other rigs' settings go by their flow rate.
+    pub fn label(self) -> String {
         match self {
-            Self::Static => "static",
-            Self::Q180 => "7 cm/s",
-            Self::Q250 => "10 cm/s",
+            Self::Static => "static".into(),
+            Self::Q180 => "7 cm/s".into(),
+            Self::Q250 => "10 cm/s".into(),
+            Self::Flow(q) => format!("{q} mL/min"),
         }
     }
 
-    /// The committed CFD map for this setting and viscosity, if the fluid moves.
-    pub fn map(self, viscosity_cp: f64, root: &Path) -> Option<PathBuf> {
-        let q = match self {
-            Self::Static => return None,
-            Self::Q180 => "q180",
-            Self::Q250 => "q250",
+    /// Short form in cell names: `static`, `q180`.
+    pub fn short(self) -> String {
+        match self {
+            Self::Static => "static".into(),
+            Self::Flow(q) => format!("q{q}"),
+        }
+    }
+
+    /// The rig's map for this setting at `viscosity_cp`, if the fluid moves; an error names
+    /// the rig when it has no such condition.
+    pub fn map(self, viscosity_cp: f64, rig: &Rig) -> anyhow::Result<Option<PathBuf>> {
+        let Self::Flow(q) = self else {
+            return Ok(None);
         };
-        let mu = if viscosity_cp > 10.0 { "mu20" } else { "mu4p3" };
-        Some(root.join(format!("fieldmaps/flow/{q}_{mu}.flow.csv")))
+        rig.phantom
+            .flow_conditions
+            .iter()
+            .find(|c| {
+                (c.flow_ml_min - f64::from(q)).abs() < 0.5
+                    && (c.viscosity_pa_s * 1e3 - viscosity_cp).abs() < 0.05
+            })
+            .map(|c| Some(c.map_path.clone()))
+            .with_context(|| {
+                format!(
+                    "{}: no [[phantom.flow]] condition at {q} mL/min and {viscosity_cp} cP",
+                    rig.path.display()
+                )
+            })
     }
 }
 
@@ -71,27 +98,42 @@ impl Cell {
         format!(
             "{}cp_{}_{}_s{}",
             self.viscosity_cp,
-            match self.flow {
-                FlowSetting::Static => "static",
-                FlowSetting::Q180 => "q180",
-                FlowSetting::Q250 => "q250",
-            },
+            self.flow.short(),
             self.controller,
             self.seed
         )
     }
 }
 
-/// The paper's matrix (plus the auto-scheduled SMC-DOB when `beyond` is set).
-pub fn paper_matrix(trials: u64, beyond: bool) -> Vec<Cell> {
+/// The matrix of a rig (the paper's on the paper rig, plus the auto-scheduled SMC-DOB when
+/// `beyond` is set): for every viscosity among the rig's flow conditions (highest first), still
+/// fluid and each condition at that viscosity (slowest first), every controller, `trials` seeds.
+pub fn rig_matrix(rig: &Rig, trials: u64, beyond: bool) -> Vec<Cell> {
     let mut controllers = vec!["pid", "mpc", "smc-dob", "smc"];
     if beyond {
         controllers.push("smc-dob-auto");
         controllers.push("smc-auto");
     }
+    let mut viscosities: Vec<f64> = Vec::new();
+    for c in &rig.phantom.flow_conditions {
+        let cp = (c.viscosity_pa_s * 1e4).round() / 10.0;
+        if !viscosities.contains(&cp) {
+            viscosities.push(cp);
+        }
+    }
+    viscosities.sort_by(|a, b| b.total_cmp(a));
     let mut cells = Vec::new();
-    for viscosity_cp in [20.0, 4.3] {
-        for flow in [FlowSetting::Static, FlowSetting::Q180, FlowSetting::Q250] {
+    for viscosity_cp in viscosities {
+        let mut flows: Vec<FlowSetting> = rig
+            .phantom
+            .flow_conditions
+            .iter()
+            .filter(|c| ((c.viscosity_pa_s * 1e4).round() / 10.0 - viscosity_cp).abs() < 1e-9)
+            .map(|c| FlowSetting::Flow(c.flow_ml_min.round() as u32))
+            .collect();
+        flows.sort();
+        flows.dedup();
+        for flow in std::iter::once(FlowSetting::Static).chain(flows) {
             for controller in &controllers {
                 for seed in 1..=trials {
                     cells.push(Cell {
@@ -109,7 +151,8 @@ pub fn paper_matrix(trials: u64, beyond: bool) -> Vec<Cell> {
 
 /// The scenario text of a cell: the base scenario's run, trajectory, plant and vision tables
 /// with the cell's fluid, flow map, controller and seed.
-pub fn cell_scenario(base: &Scenario, cell: &Cell, root: &Path) -> anyhow::Result<String> {
+pub fn cell_scenario(base: &Scenario, cell: &Cell) -> anyhow::Result<String> {
+    let rig = base.rig()?;
     let mut doc: toml::Table = toml::Table::new();
     let mut run = toml::Table::try_from(&base.run)?;
     run.insert("seed".into(), toml::Value::Integer(cell.seed as i64));
@@ -129,7 +172,7 @@ pub fn cell_scenario(base: &Scenario, cell: &Cell, root: &Path) -> anyhow::Resul
         .and_then(|v| v.as_table().cloned())
         .unwrap_or_default();
     flow.remove("map");
-    if let Some(map) = cell.flow.map(cell.viscosity_cp, root) {
+    if let Some(map) = cell.flow.map(cell.viscosity_cp, &rig)? {
         flow.insert("map".into(), map.to_string_lossy().into_owned().into());
     }
     doc.insert("flow".into(), flow.into());
@@ -449,6 +492,79 @@ pub fn write_rrd(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_matrix_is_made_from_the_rigs_conditions() {
+        // The paper rig: {20, 4.3} cP x {static, 180, 250 mL/min}, as the paper.
+        let paper = Rig::load_paper().unwrap();
+        let cells = rig_matrix(&paper, 1, false);
+        let conditions: Vec<(f64, FlowSetting)> = cells
+            .iter()
+            .filter(|c| c.controller == "pid")
+            .map(|c| (c.viscosity_cp, c.flow))
+            .collect();
+        use FlowSetting::Static;
+        assert_eq!(
+            conditions,
+            [
+                (20.0, Static),
+                (20.0, FlowSetting::Q180),
+                (20.0, FlowSetting::Q250),
+                (4.3, Static),
+                (4.3, FlowSetting::Q180),
+                (4.3, FlowSetting::Q250)
+            ]
+        );
+        assert_eq!(cells.len(), 6 * 4);
+        // The second rig: its own conditions, and cells run on its own maps.
+        let root = fieldmaps::data_root();
+        let vessel = Rig::load(&root.join("fieldmaps/rigs/vessel8.toml")).unwrap();
+        let cells = rig_matrix(&vessel, 1, false);
+        let mut expected: Vec<(f64, FlowSetting)> = vec![];
+        let mut viscosities: Vec<f64> = vessel
+            .phantom
+            .flow_conditions
+            .iter()
+            .map(|c| (c.viscosity_pa_s * 1e4).round() / 10.0)
+            .collect();
+        viscosities.sort_by(|a, b| b.total_cmp(a));
+        viscosities.dedup();
+        for v in viscosities {
+            expected.push((v, Static));
+            let mut flows: Vec<u32> = vessel
+                .phantom
+                .flow_conditions
+                .iter()
+                .filter(|c| ((c.viscosity_pa_s * 1e4).round() / 10.0 - v).abs() < 1e-9)
+                .map(|c| c.flow_ml_min.round() as u32)
+                .collect();
+            flows.sort();
+            expected.extend(flows.into_iter().map(|q| (v, FlowSetting::Flow(q))));
+        }
+        let got: Vec<(f64, FlowSetting)> = cells
+            .iter()
+            .filter(|c| c.controller == "pid")
+            .map(|c| (c.viscosity_cp, c.flow))
+            .collect();
+        assert_eq!(got, expected);
+        let base = Scenario::load(&root.join("scenarios/vessel8.toml")).unwrap();
+        let moving = cells.iter().find(|c| c.flow != Static).unwrap();
+        let text = cell_scenario(&base, moving).unwrap();
+        let map = moving
+            .flow
+            .map(moving.viscosity_cp, &vessel)
+            .unwrap()
+            .unwrap();
+        assert!(
+            map.starts_with(root.join("fieldmaps/rigs/vessel8")),
+            "{map:?}"
+        );
+        assert!(text.contains(&*map.to_string_lossy()), "{text}");
+        assert!(text.contains("vessel8.toml"), "{text}");
+        // A condition the rig lacks is an error naming the rig.
+        let err = FlowSetting::Flow(999).map(4.3, &vessel).unwrap_err();
+        assert!(err.to_string().contains("vessel8.toml"), "{err}");
+    }
 
     #[test]
     fn metrics_on_a_perfect_and_a_lost_trace() {

@@ -5,10 +5,11 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::{Parser, ValueEnum};
+use fieldmaps::rigfile::Rig;
 use indicatif::{ProgressBar, ProgressStyle};
 use millinav_experiments::report::{self, Outcome};
 use millinav_experiments::{
-    cell_scenario, fast_run, metrics, paper_matrix, process_run, recorded_run, reference_of,
+    cell_scenario, fast_run, metrics, process_run, recorded_run, reference_of, rig_matrix,
     write_rrd, Cell, Metrics, TraceRow,
 };
 use millinav_kit::scenario::Scenario;
@@ -71,16 +72,16 @@ type FirstTrials = Vec<(Cell, Vec<TraceRow>)>;
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let root = std::env::current_dir()?;
     let base = load_base(&args)?;
-    let cells = selected_cells(&args)?;
+    let rig = base.rig()?;
+    let cells = selected_cells(&args, &rig)?;
     std::fs::create_dir_all(&args.out)?;
     let threads = match args.mode {
         Mode::Fast => args.threads.max(1),
         Mode::Process => 1,
     };
     let start = Instant::now();
-    let (mut outcomes, traces) = run_cells(&args, &base, &root, cells, threads)?;
+    let (mut outcomes, traces) = run_cells(&args, &base, cells, threads)?;
     outcomes.sort_by_key(|o| o.cell.name());
     let mode = format!("{:?}", args.mode).to_lowercase();
     write_tables(&args, &base, &outcomes, &mode)?;
@@ -112,7 +113,7 @@ fn load_base(args: &Args) -> anyhow::Result<Scenario> {
 }
 
 /// The matrix's cells that `--beyond`, `--controllers` and `--only` select (at least one).
-fn selected_cells(args: &Args) -> anyhow::Result<Vec<Cell>> {
+fn selected_cells(args: &Args, rig: &Rig) -> anyhow::Result<Vec<Cell>> {
     // Naming a beyond-the-paper controller asks for it, with or without --beyond.
     let beyond = args.beyond
         || args
@@ -120,7 +121,7 @@ fn selected_cells(args: &Args) -> anyhow::Result<Vec<Cell>> {
             .iter()
             .any(|c| matches!(c.as_str(), "smc-dob-auto" | "smc-auto"));
     let all_controllers: Vec<String> =
-        paper_matrix(1, true)
+        rig_matrix(rig, 1, true)
             .into_iter()
             .fold(Vec::new(), |mut names, c| {
                 if !names.contains(&c.controller) {
@@ -138,7 +139,7 @@ fn selected_cells(args: &Args) -> anyhow::Result<Vec<Cell>> {
             all_controllers.join(", ")
         );
     }
-    let mut cells = paper_matrix(args.trials.max(1), beyond);
+    let mut cells = rig_matrix(rig, args.trials.max(1), beyond);
     if !args.controllers.is_empty() {
         cells.retain(|c| args.controllers.contains(&c.controller));
     }
@@ -158,7 +159,6 @@ fn selected_cells(args: &Args) -> anyhow::Result<Vec<Cell>> {
 fn run_cells(
     args: &Args,
     base: &Scenario,
-    root: &Path,
     cells: Vec<Cell>,
     threads: usize,
 ) -> anyhow::Result<(Vec<Outcome>, FirstTrials)> {
@@ -179,7 +179,7 @@ fn run_cells(
             let Some(cell) = queue.lock().map_err(|_| poisoned())?.pop() else {
                 return Ok(());
             };
-            let (trace, m, wall_s) = run_cell(args, base, root, &bin_dir, &cell)?;
+            let (trace, m, wall_s) = run_cell(args, base, &bin_dir, &cell)?;
             bar.set_message(format!("{} RMSE {:.2} mm", cell.name(), m.rmse_mm));
             bar.inc(1);
             if cell.seed == 1 {
@@ -214,11 +214,10 @@ fn run_cells(
 fn run_cell(
     args: &Args,
     base: &Scenario,
-    root: &Path,
     bin_dir: &Path,
     cell: &Cell,
 ) -> anyhow::Result<(Vec<TraceRow>, Metrics, f64)> {
-    let text = cell_scenario(base, cell, root)?;
+    let text = cell_scenario(base, cell)?;
     let scenario = Scenario::parse(&text, &args.out.join(format!("{}.toml", cell.name())))?;
     let t0 = Instant::now();
     let trace = match args.mode {
@@ -255,11 +254,27 @@ fn write_tables(
     mode: &str,
 ) -> anyhow::Result<()> {
     report::write_csv(outcomes, &args.out.join("results.csv"))?;
+    let rig = base.rig()?;
+    // The paper's numbers and targets apply to the paper's rig only.
+    let on_paper_rig = rig.path == fieldmaps::rigfile::paper_rig_path();
     let table = report::markdown_table(
         outcomes,
-        &format!("{mode}, {} ms frame period", base.run.frame_period_ms),
+        &format!(
+            "{mode}, {} ms frame period, rig {} ({})",
+            base.run.frame_period_ms,
+            rig.name,
+            rig.path
+                .strip_prefix(fieldmaps::data_root())
+                .unwrap_or(&rig.path)
+                .display()
+        ),
+        on_paper_rig,
     );
-    let table = table + &report::target_checks(outcomes);
+    let table = if on_paper_rig {
+        table + &report::target_checks(outcomes)
+    } else {
+        table
+    };
     std::fs::write(args.out.join("table.md"), &table)?;
     println!("{table}");
     Ok(())

@@ -54,7 +54,7 @@ pub fn paper_smc_dob_rmse_mm(viscosity_cp: f64, flow: FlowSetting) -> Option<f64
         (true, FlowSetting::Q250) => Some(2.0),
         (false, FlowSetting::Static) => Some(1.05),
         (false, FlowSetting::Q180) => Some(1.60),
-        (false, FlowSetting::Q250) => None,
+        _ => None,
     }
 }
 
@@ -200,7 +200,8 @@ fn groups(outcomes: &[Outcome]) -> BTreeMap<(i64, FlowSetting, String), Vec<&Out
     g
 }
 
-pub fn markdown_table(outcomes: &[Outcome], mode: &str) -> String {
+/// The table; `with_paper` adds the paper's numbers beside ours (on the paper's rig).
+pub fn markdown_table(outcomes: &[Outcome], mode: &str, with_paper: bool) -> String {
     let mut out = format!(
         "Mode: {mode}. Mean ± sd over trials; \"failed\" = error above {} mm for more than {} s, or never within it of the end after the reference got there.\n\n\
          | condition | controller | trials | completed | RMSE mm | P95 mm | Max mm | wall contacts | peak A | energy J | paper RMSE / P95 / Max |\n\
@@ -228,7 +229,11 @@ pub fn markdown_table(outcomes: &[Outcome], mode: &str) -> String {
             mean_sd(&list.iter().map(|o| o.metrics.wall_contact_frames as f64).collect::<Vec<_>>()).0,
             mean_sd(&list.iter().map(|o| o.metrics.peak_current_a).collect::<Vec<_>>()).0,
             mean_sd(&list.iter().map(|o| o.metrics.energy_j).collect::<Vec<_>>()).0,
-            paper(viscosity, flow, &controller)
+            if with_paper {
+                paper(viscosity, flow, &controller)
+            } else {
+                "–"
+            }
         );
     }
     out

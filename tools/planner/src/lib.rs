@@ -515,9 +515,22 @@ pub fn scenario_with_plan(
     template: &str,
     plan: &Plan,
     speed_mm_s: Option<f64>,
+    rig: Option<&std::path::Path>,
 ) -> Result<String, PlanError> {
     let mut doc: toml::Table = toml::from_str(template)
         .map_err(|e| PlanError::Config(format!("scenario template: {e}")))?;
+    if let Some(rig) = rig {
+        // The plan is on this rig's phantom: the scenario runs on it.
+        let run = doc
+            .entry("run")
+            .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+        let Some(run) = run.as_table_mut() else {
+            return Err(PlanError::Config(
+                "scenario template: `run` is not a table".into(),
+            ));
+        };
+        run.insert("rig".into(), rig.to_string_lossy().into_owned().into());
+    }
     let entry = doc
         .entry("trajectory")
         .or_insert_with(|| toml::Value::Table(toml::Table::new()));

@@ -54,7 +54,6 @@ struct Args {
     /// Write a full scenario: this scenario file with its trajectory replaced.
     #[arg(long)]
     scenario_template: Option<PathBuf>,
-    /// Output file (default: stdout).
     /// Also write a Rerun recording (.rrd) of the plan drawn over the top-view image: the canal
     /// mask, or `--image` (e.g. a camera frame) when given.
     #[arg(long)]
@@ -62,6 +61,7 @@ struct Args {
     /// Background image for `--rrd` (PNG/JPEG of the same size as the mask).
     #[arg(long)]
     image: Option<std::path::PathBuf>,
+    /// Output file (default: stdout).
     #[arg(short, long)]
     output: Option<PathBuf>,
 }
@@ -143,7 +143,9 @@ fn main() -> anyhow::Result<()> {
         Some(path) => {
             let template = std::fs::read_to_string(path)
                 .with_context(|| format!("reading scenario template {}", path.display()))?;
-            scenario_with_plan(&template, &plan, args.speed_mm_s)?
+            // A rig other than the default is named in the scenario's `[run] rig`.
+            let rig = (args.rig != fieldmaps::rigfile::paper_rig_path()).then_some(&*args.rig);
+            scenario_with_plan(&template, &plan, args.speed_mm_s, rig)?
         }
         None => format!(
             "# millinav-planner: A* on the canal mask, {:.1} mm clearance, w_clear {}, window {},\n\
