@@ -329,15 +329,7 @@ fn fault_matrix(name: &str, scenario: &str, max_current_a: f64) {
         println!("{outcome:?}");
         outcomes.push(outcome);
     }
-    let status = run.wait(Duration::from_secs(240)).expect("run finishes");
-    assert!(status.success(), "supervisor exit {status}");
-    let events = run.supervisor_events().expect("events");
-    assert!(
-        events
-            .iter()
-            .any(|e| e.service == "plant" && e.event == "run_complete"),
-        "the run did not complete"
-    );
+    run.assert_completes(Duration::from_secs(240));
     let teensy = run.teensy_events().expect("teensy");
     assert_invariants(&run, &teensy, max_current_a);
 

@@ -55,15 +55,7 @@ fn the_process_set_closes_the_loop_on_the_second_rig() {
     let text = vessel8_scenario_text(20.0, false, "\n[vision]\nlocalizer = \"classical\"\n")
         .replace("viscosity_cp = 4.3", "viscosity_cp = 20.0");
     let mut run = RunSet::start("vessel8", &text).expect("start");
-    let status = run.wait(Duration::from_secs(240)).expect("run finishes");
-    assert!(status.success(), "supervisor exit {status}");
-    let events = run.supervisor_events().expect("events");
-    assert!(
-        events
-            .iter()
-            .any(|e| e.service == "plant" && e.event == "run_complete"),
-        "the run did not complete: {events:?}"
-    );
+    run.assert_completes(Duration::from_secs(240));
     // The board took 8-coil commands (a wrong count would be rejected and logged) and never
     // saw more than a coil's limit.
     let teensy = run.teensy_events().expect("teensy log");

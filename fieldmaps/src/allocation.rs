@@ -100,6 +100,55 @@ fn check_command(a: &DMatrix<f64>, c: &DVector<f64>) -> Result<(), AllocationErr
     Ok(())
 }
 
+/// Why [`guaranteed_force`] has no answer.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum ForceBoundError {
+    #[error("the orientation field alone exceeds the limits")]
+    FieldInfeasible,
+    #[error(transparent)]
+    Allocation(#[from] AllocationError),
+}
+
+/// Bisection steps on the force scale α ∈ [0, 1]: 60 halvings reach the f64 resolution of α.
+const FORCE_BISECTION_STEPS: u32 = 60;
+
+/// The largest force magnitude (N, at most 1 N) the pseudo-inverse allocation of `a` reaches in
+/// *every* one of `directions` evenly spaced in-plane directions while also producing the
+/// field rows `field_rhs` (`[0, 0, ω0·Bx, ω0·By]`), with the currents within `feasible`. For
+/// each direction d the currents are I(α) = pinv(A)·(field_rhs + α [d, 0, 0]); the feasible α
+/// form an interval containing 0 when the field alone is feasible, so bisection finds its end.
+pub fn guaranteed_force(
+    a: &DMatrix<f64>,
+    field_rhs: &DVector<f64>,
+    directions: u32,
+    feasible: impl Fn(&DVector<f64>) -> bool,
+) -> Result<f64, ForceBoundError> {
+    let i_field = allocate_pinv(a, field_rhs)?;
+    if !feasible(&i_field) {
+        return Err(ForceBoundError::FieldInfeasible);
+    }
+    let mut best = 1.0f64;
+    for k in 0..directions.max(1) {
+        let th = f64::from(k) * std::f64::consts::TAU / f64::from(directions.max(1));
+        let unit = DVector::from_vec(vec![th.cos(), th.sin(), 0.0, 0.0]);
+        let i_unit = allocate_pinv(a, &unit)?;
+        let (mut lo, mut hi) = (0.0, 1.0);
+        if feasible(&(&i_field + &i_unit * hi)) {
+            continue;
+        }
+        for _ in 0..FORCE_BISECTION_STEPS {
+            let mid = 0.5 * (lo + hi);
+            if feasible(&(&i_field + &i_unit * mid)) {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        best = best.min(lo);
+    }
+    Ok(best)
+}
+
 /// Least-norm currents I = W Σ⁺ Uᵀ C (paper Eq. 3–4), with [`DEFAULT_RCOND`].
 pub fn allocate_pinv(a: &DMatrix<f64>, c: &DVector<f64>) -> Result<DVector<f64>, AllocationError> {
     allocate_pinv_rcond(a, c, DEFAULT_RCOND)

@@ -127,6 +127,21 @@ impl RunSet {
         }
     }
 
+    /// Waits for the supervisor and checks that it exited cleanly after the plant reported
+    /// `run_complete` (the whole scenario ran).
+    pub fn assert_completes(&mut self, timeout: Duration) {
+        let status = self.wait(timeout).expect("run finishes");
+        assert!(status.success(), "supervisor exit {status}");
+        let events = self.supervisor_events().expect("supervisor events");
+        assert!(
+            events
+                .iter()
+                .any(|e| e.service == "plant" && e.event == "run_complete"),
+            "run {} did not complete: {events:?}",
+            self.name
+        );
+    }
+
     /// Asks the supervisor to stop (SIGTERM) and waits for it.
     pub fn stop(&mut self, timeout: Duration) -> anyhow::Result<ExitStatus> {
         let child = self

@@ -2,7 +2,7 @@
 //! its coils can guarantee on the canal while holding an orientation field.
 use std::path::PathBuf;
 
-use fieldmaps::allocation::{actuation_matrix_from, allocate_pinv};
+use fieldmaps::allocation::{actuation_matrix_from, guaranteed_force};
 use fieldmaps::physics::in_plane_moment;
 use fieldmaps::rigfile::Rig;
 use nalgebra::{DVector, Vector2, Vector3};
@@ -31,8 +31,6 @@ pub struct RigCheckArgs {
 /// Force directions and field headings tried at each point.
 const FORCE_DIRECTIONS: u32 = 16;
 const FIELD_HEADINGS: u32 = 8;
-/// Bisection steps on the force magnitude (1 N upper bound: far beyond any coil set here).
-const BISECTION_STEPS: u32 = 40;
 
 /// Which current limits the budget respects.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -79,32 +77,9 @@ pub fn guaranteed_force_n(
         let a = actuation_matrix_from(&rig.coil_field, &p3, &moment, ids, omega0);
         let b = Vector2::new(heading.cos(), heading.sin()) * field_t;
         let rhs = DVector::from_vec(vec![0.0, 0.0, omega0 * b.x, omega0 * b.y]);
-        let Ok(i_field) = allocate_pinv(&a, &rhs) else {
-            return 0.0;
-        };
-        if !feasible(&i_field) {
-            return 0.0;
-        }
-        for k in 0..FORCE_DIRECTIONS {
-            let th = f64::from(k) * std::f64::consts::TAU / f64::from(FORCE_DIRECTIONS);
-            let unit = DVector::from_vec(vec![th.cos(), th.sin(), 0.0, 0.0]);
-            let Ok(i_unit) = allocate_pinv(&a, &unit) else {
-                return 0.0;
-            };
-            let (mut lo, mut hi) = (0.0, 1.0);
-            if feasible(&(&i_field + &i_unit * hi)) {
-                best = best.min(hi);
-                continue;
-            }
-            for _ in 0..BISECTION_STEPS {
-                let mid = 0.5 * (lo + hi);
-                if feasible(&(&i_field + &i_unit * mid)) {
-                    lo = mid;
-                } else {
-                    hi = mid;
-                }
-            }
-            best = best.min(lo);
+        match guaranteed_force(&a, &rhs, FORCE_DIRECTIONS, &feasible) {
+            Ok(force) => best = best.min(force),
+            Err(_) => return 0.0,
         }
     }
     if best.is_finite() {

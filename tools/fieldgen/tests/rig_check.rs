@@ -82,7 +82,7 @@ fn vessel8_rig_checks_out_with_its_force_budget() {
     for needle in [
         "coils: 8",
         "allocation: 8 coils",
-        "camera: 800x640 px Gray8",
+        "camera: 800x640 px Rgb8",
         "branch-outlet",
         "flow conditions: 3",
         "force budget at 5 mT",

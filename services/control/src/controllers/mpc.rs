@@ -17,7 +17,7 @@
 
 use clarabel::algebra::CscMatrix;
 use clarabel::solver::{DefaultSettings, DefaultSolver, IPSolver, NonnegativeConeT, SolverStatus};
-use fieldmaps::allocation::{actuation_matrix_from, allocate_pinv};
+use fieldmaps::allocation::{actuation_matrix_from, guaranteed_force, ForceBoundError};
 use fieldmaps::coils::CoilField;
 use fieldmaps::physics;
 use fieldmaps::rig::CoilLimits;
@@ -144,15 +144,11 @@ pub const FALLBACK_MAX_FORCE_N: f64 = 3.7e-4;
 
 /// Directions over which `estimate_max_force_n` takes its minimum.
 const FORCE_BOUND_DIRECTIONS: u32 = 16;
-/// Bisection steps on the force scale α ∈ [0, 1]: 60 halvings reach the f64 resolution of α.
-const FORCE_BOUND_BISECTION_STEPS: u32 = 60;
 
 /// Largest force magnitude the allocation's coils can produce in *every* direction while also
 /// holding the orientation field `field_t`, within `limits` (per-coil current and total power),
-/// taken as the minimum over 16 directions and the site's points (the path's waypoints). Uses the same pseudo-inverse allocation as the control loop: for
-/// each direction d the currents are I(α) = pinv(A)·[α d, ω0 B], and the largest feasible α is
-/// found by bisection (the feasible set of α is an interval containing 0 when the field alone
-/// is feasible).
+/// taken as the minimum over 16 directions and the site's points (the path's waypoints), with
+/// the control loop's pseudo-inverse allocation (`fieldmaps::allocation::guaranteed_force`).
 pub fn estimate_max_force_n(
     site: &ForceSite<'_>,
     limits: &CoilLimits,
@@ -180,32 +176,11 @@ pub fn estimate_max_force_n(
         let p3 = Vector3::new(p.x, p.y, 0.0);
         let a = actuation_matrix_from(site.coils, &p3, &moment, site.coil_ids, omega0);
         let field_rhs = DVector::from_vec(vec![0.0, 0.0, omega0 * field_t.x, omega0 * field_t.y]);
-        let Ok(i_field) = allocate_pinv(&a, &field_rhs) else {
-            continue;
-        };
-        if !feasible(&i_field) {
-            return FALLBACK_MAX_FORCE_N;
-        }
-        for k in 0..FORCE_BOUND_DIRECTIONS {
-            let th = f64::from(k) * std::f64::consts::TAU / f64::from(FORCE_BOUND_DIRECTIONS);
-            let unit = DVector::from_vec(vec![th.cos(), th.sin(), 0.0, 0.0]);
-            let Ok(i_unit) = allocate_pinv(&a, &unit) else {
-                continue;
-            };
-            let (mut lo, mut hi) = (0.0, 1.0);
-            if feasible(&(&i_field + &i_unit * hi)) {
-                best = best.min(hi);
-                continue;
-            }
-            for _ in 0..FORCE_BOUND_BISECTION_STEPS {
-                let mid = 0.5 * (lo + hi);
-                if feasible(&(&i_field + &i_unit * mid)) {
-                    lo = mid;
-                } else {
-                    hi = mid;
-                }
-            }
-            best = best.min(lo);
+        match guaranteed_force(&a, &field_rhs, FORCE_BOUND_DIRECTIONS, &feasible) {
+            Ok(force) => best = best.min(force),
+            Err(ForceBoundError::FieldInfeasible) => return FALLBACK_MAX_FORCE_N,
+            // A point where the coils cannot act says nothing about the others.
+            Err(ForceBoundError::Allocation(_)) => continue,
         }
     }
     if best.is_finite() && best > 0.0 {
