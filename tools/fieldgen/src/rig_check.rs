@@ -77,7 +77,7 @@ pub fn guaranteed_force_n(
         let a = actuation_matrix_from(&rig.coil_field, &p3, &moment, ids, omega0);
         let b = Vector2::new(heading.cos(), heading.sin()) * field_t;
         let rhs = DVector::from_vec(vec![0.0, 0.0, omega0 * b.x, omega0 * b.y]);
-        match guaranteed_force(&a, &rhs, FORCE_DIRECTIONS, &feasible) {
+        match guaranteed_force(&a, &rhs, FORCE_DIRECTIONS, feasible) {
             Ok(force) => best = best.min(force),
             Err(_) => return 0.0,
         }

@@ -176,7 +176,7 @@ pub fn estimate_max_force_n(
         let p3 = Vector3::new(p.x, p.y, 0.0);
         let a = actuation_matrix_from(site.coils, &p3, &moment, site.coil_ids, omega0);
         let field_rhs = DVector::from_vec(vec![0.0, 0.0, omega0 * field_t.x, omega0 * field_t.y]);
-        match guaranteed_force(&a, &field_rhs, FORCE_BOUND_DIRECTIONS, &feasible) {
+        match guaranteed_force(&a, &field_rhs, FORCE_BOUND_DIRECTIONS, feasible) {
             Ok(force) => best = best.min(force),
             Err(ForceBoundError::FieldInfeasible) => return FALLBACK_MAX_FORCE_N,
             // A point where the coils cannot act says nothing about the others.
