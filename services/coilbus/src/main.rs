@@ -5,7 +5,8 @@ use shm_schemas::ServiceId;
 
 /// Drives the coil amplifiers: takes commands from control, enforces limits and deadlines, and
 /// writes currents to the Teensy over a serial port (real, or the twin's emulated one).
-/// Scenario table: [coilbus] (port, baud, limits).
+/// Scenario table: [coilbus] (port, baud, optional lower current/power caps); coil count and
+/// per-coil limits come from the scenario's rig file.
 #[derive(Parser)]
 #[command(name = "millinav-coilbus", version)]
 struct Args {
