@@ -516,6 +516,7 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
         run_dir = %plan.run_dir.display(),
         scenario = %plan.scenario_path.display(),
         mode = ?plan.scenario.run.mode,
+        rig = %plan.scenario.rig_path().display(),
         "supervisor starting the set"
     );
     let mut supervisor = Supervisor::new(&options, &plan, base_env, &rt)?;
@@ -532,8 +533,7 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
 fn plan(options: &SupervisorOptions) -> anyhow::Result<Plan> {
     let scenario = Scenario::load(&options.scenario)?;
     // One clear error for a bad rig file, before five services each report it.
-    let rig = scenario.rig()?;
-    tracing::info!(rig = %rig.name, path = %rig.path.display(), coils = rig.coils.len(), "rig");
+    scenario.rig()?;
     std::fs::create_dir_all(&options.run_dir)
         .with_context(|| format!("creating the run directory {}", options.run_dir.display()))?;
     Ok(Plan {
