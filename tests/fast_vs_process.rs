@@ -8,15 +8,40 @@
 //! the same completion verdict and no wall contact in either mode. The remaining difference is
 //! the localization noise model (fast mode: 20 µm Gaussian; process: the UNet on rendered,
 //! noisy, blurred frames).
+//!
+//! The latency cell (2 frames of camera latency, PID, still fluid; issue 21 point 6) runs the
+//! uncompensated PID into a latency-driven oscillation (RMSE ≈ 1.06 mm in both modes instead of
+//! ≈ 0.1 mm): the RMSE must agree as above, while the tails of an oscillation depend on the
+//! localization noise, so P95 and Max are compared within `OSCILLATION_TAIL_TOL_MM`.
 
 use millinav_experiments::{fast_run, process_run, Cell, FlowSetting, Metrics};
 
 const RMSE_TOL_MM: f64 = 0.05;
 const P95_TOL_MM: f64 = 0.10;
 const MAX_TOL_MM: f64 = 0.25;
+/// P95 and Max tolerance of the latency cell (measured: 0.16 and 0.25 mm apart).
+const OSCILLATION_TAIL_TOL_MM: f64 = 0.4;
 
 fn compare(cell: Cell) {
-    let paper = millinav_tests::PaperCell::new(&cell, |base| base.run.duration_s = 20.0);
+    compare_with(cell, 0);
+}
+
+/// Compares the two modes on `cell` with `latency_frames` frames of camera latency.
+fn compare_with(cell: Cell, latency_frames: u32) {
+    let paper = millinav_tests::PaperCell::new(&cell, |base| {
+        base.run.duration_s = 20.0;
+        if latency_frames > 0 {
+            let mut camera = toml::Table::new();
+            camera.insert("latency_frames".into(), i64::from(latency_frames).into());
+            let mut plant = base
+                .sections
+                .get("plant")
+                .and_then(|v| v.as_table().cloned())
+                .unwrap_or_default();
+            plant.insert("camera".into(), camera.into());
+            base.sections.insert("plant".into(), plant.into());
+        }
+    });
     // One directory per cell: the tests run in parallel and each removes its own at the end.
     let work = std::env::temp_dir().join(format!(
         "millinav-fvp-{}-{}",
@@ -47,14 +72,19 @@ fn compare(cell: Cell) {
         fast.rmse_mm,
         process.rmse_mm
     );
+    let (p95_tol, max_tol) = if latency_frames > 0 {
+        (OSCILLATION_TAIL_TOL_MM, OSCILLATION_TAIL_TOL_MM)
+    } else {
+        (P95_TOL_MM, MAX_TOL_MM)
+    };
     assert!(
-        (fast.p95_mm - process.p95_mm).abs() <= P95_TOL_MM,
+        (fast.p95_mm - process.p95_mm).abs() <= p95_tol,
         "P95 fast {:.3} vs process {:.3} mm",
         fast.p95_mm,
         process.p95_mm
     );
     assert!(
-        (fast.max_mm - process.max_mm).abs() <= MAX_TOL_MM,
+        (fast.max_mm - process.max_mm).abs() <= max_tol,
         "Max fast {:.3} vs process {:.3} mm",
         fast.max_mm,
         process.max_mm
@@ -77,6 +107,20 @@ fn pid_in_still_fluid_agrees() {
         controller: "pid".into(),
         seed: 1,
     });
+}
+
+/// Both modes show the robot as it was `latency_frames` frames ago (issue 21, point 6).
+#[test]
+fn pid_with_camera_latency_agrees() {
+    compare_with(
+        Cell {
+            viscosity_cp: 20.0,
+            flow: FlowSetting::Static,
+            controller: "pid".into(),
+            seed: 1,
+        },
+        2,
+    );
 }
 
 #[test]

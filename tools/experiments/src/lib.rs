@@ -8,6 +8,7 @@
 
 pub mod report;
 
+use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
@@ -234,6 +235,10 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
     let mut applied = [0.0; MAX_COILS];
     let mut trace = Vec::with_capacity(frames as usize + 1);
     let now = std::time::Instant::now();
+    // The camera's latency as the plant applies it: frame k shows the state of frame k − L,
+    // stamped with frame k's time (the delay is hidden, as on a rig).
+    let latency = plant_config.camera.latency_frames as usize;
+    let mut seen: VecDeque<(Vector2<f64>, f64)> = VecDeque::with_capacity(latency + 1);
     for seq in 0..=frames {
         trace.push(TraceRow {
             time_s: state.time_s,
@@ -248,12 +253,16 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
         if seq == frames {
             break;
         }
-        let measured =
-            state.position_m + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng));
+        seen.push_back((state.position_m, state.heading_rad));
+        while seen.len() > latency + 1 {
+            seen.pop_front();
+        }
+        let (seen_position, seen_heading) = seen[0];
+        let measured = seen_position + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng));
         let pose = Pose {
             stamp: FrameStamp::new(seq, 0, secs_to_ns(state.time_s)),
             position_m: [measured.x, measured.y],
-            heading_rad: state.heading_rad,
+            heading_rad: seen_heading,
             confidence: 1.0,
             valid: Flag::TRUE,
             source: PoseSource::Unet as u32,
