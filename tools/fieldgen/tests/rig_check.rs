@@ -10,27 +10,44 @@ fn fieldgen(rig: &Path) -> std::process::Output {
         .unwrap()
 }
 
-#[test]
-fn paper_rig_checks_out() {
-    let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fieldmaps/rigs/paper.toml");
-    let out = fieldgen(&rig);
+/// `fieldgen rig-check <args> --rig <committed rig>` passes and prints every one of `needles`.
+fn checks_out(rig_file: &str, args: &[&str], needles: &[&str]) {
+    let rig = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fieldmaps/rigs")
+        .join(rig_file);
+    let out = Command::new(env!("CARGO_BIN_EXE_fieldgen"))
+        .arg("rig-check")
+        .args(args)
+        .arg("--rig")
+        .arg(&rig)
+        .output()
+        .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
         out.status.success(),
         "{stdout}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    for needle in [
-        "coils: 12",
-        "allocation: 8 coils",
-        "camera: 1020x1020 px",
-        "inlet-1",
-        "zone",
-        "flow conditions: 4",
-        "rig ok",
-    ] {
+    for needle in needles {
         assert!(stdout.contains(needle), "{needle} missing from\n{stdout}");
     }
+}
+
+#[test]
+fn paper_rig_checks_out() {
+    checks_out(
+        "paper.toml",
+        &[],
+        &[
+            "coils: 12",
+            "allocation: 8 coils",
+            "camera: 1020x1020 px",
+            "inlet-1",
+            "zone",
+            "flow conditions: 4",
+            "rig ok",
+        ],
+    );
 }
 
 #[test]
@@ -60,34 +77,17 @@ fn bad_rig_names_file_and_field() {
 fn vessel8_rig_checks_out_with_its_force_budget() {
     // The second rig: nothing in the code knows it. Its coils must push the capsule with at
     // least 0.2 mN in every direction at the route's ends while holding a 5 mT field.
-    let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fieldmaps/rigs/vessel8.toml");
-    let out = Command::new(env!("CARGO_BIN_EXE_fieldgen"))
-        .args([
-            "rig-check",
-            "--field-mt",
-            "5",
-            "--min-force-mn",
-            "0.2",
-            "--rig",
-        ])
-        .arg(&rig)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
+    checks_out(
+        "vessel8.toml",
+        &["--field-mt", "5", "--min-force-mn", "0.2"],
+        &[
+            "coils: 8",
+            "allocation: 8 coils",
+            "camera: 800x640 px Rgb8",
+            "branch-outlet",
+            "flow conditions: 3",
+            "force budget at 5 mT",
+            "rig ok",
+        ],
     );
-    for needle in [
-        "coils: 8",
-        "allocation: 8 coils",
-        "camera: 800x640 px Rgb8",
-        "branch-outlet",
-        "flow conditions: 3",
-        "force budget at 5 mT",
-        "rig ok",
-    ] {
-        assert!(stdout.contains(needle), "{needle} missing from\n{stdout}");
-    }
 }
