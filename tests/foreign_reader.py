@@ -23,17 +23,18 @@ MAX_COILS = 16
 
 
 class FrameStamp(ctypes.Structure):
-    """CONTRACT.md, "FrameStamp": 24 bytes, alignment 8."""
+    """CONTRACT.md, "FrameStamp": 32 bytes, alignment 8."""
 
     _fields_ = [
         ("seq", ctypes.c_uint64),
         ("incarnation", ctypes.c_uint64),
         ("capture_time_ns", ctypes.c_uint64),
+        ("grab_time_ns", ctypes.c_uint64),
     ]
 
 
 class Pose(ctypes.Structure):
-    """CONTRACT.md, "Pose": type name millinav::Pose.v2, 112 bytes, alignment 8."""
+    """CONTRACT.md, "Pose": type name millinav::Pose.v3, 120 bytes, alignment 8."""
 
     _fields_ = [
         ("stamp", FrameStamp),
@@ -50,11 +51,11 @@ class Pose(ctypes.Structure):
 
     @staticmethod
     def type_name() -> str:
-        return "millinav::Pose.v2"
+        return "millinav::Pose.v3"
 
 
 class CoilCommand(ctypes.Structure):
-    """CONTRACT.md, "CoilCommand": type name millinav::CoilCommand.v2, 208 bytes, alignment 8."""
+    """CONTRACT.md, "CoilCommand": type name millinav::CoilCommand.v3, 216 bytes, alignment 8."""
 
     _fields_ = [
         ("stamp", FrameStamp),
@@ -70,40 +71,43 @@ class CoilCommand(ctypes.Structure):
 
     @staticmethod
     def type_name() -> str:
-        return "millinav::CoilCommand.v2"
+        return "millinav::CoilCommand.v3"
 
 
 def check_layouts() -> None:
     """The structures match the sizes and offsets CONTRACT.md gives."""
     expected = {
-        FrameStamp: (24, {"seq": 0, "incarnation": 8, "capture_time_ns": 16}),
+        FrameStamp: (
+            32,
+            {"seq": 0, "incarnation": 8, "capture_time_ns": 16, "grab_time_ns": 24},
+        ),
         Pose: (
-            112,
+            120,
             {
                 "stamp": 0,
-                "position_m": 24,
-                "heading_rad": 40,
-                "tip_m": 48,
-                "centroid_m": 64,
-                "tail_m": 80,
-                "confidence": 96,
-                "source": 104,
-                "valid": 108,
-                "reserved": 109,
+                "position_m": 32,
+                "heading_rad": 48,
+                "tip_m": 56,
+                "centroid_m": 72,
+                "tail_m": 88,
+                "confidence": 104,
+                "source": 112,
+                "valid": 116,
+                "reserved": 117,
             },
         ),
         CoilCommand: (
-            208,
+            216,
             {
                 "stamp": 0,
-                "control_incarnation": 24,
-                "active_coils": 32,
-                "mode": 36,
-                "controller_id": 40,
-                "reserved": 44,
-                "currents_a": 48,
-                "force_des_n": 176,
-                "field_des_t": 192,
+                "control_incarnation": 32,
+                "active_coils": 40,
+                "mode": 44,
+                "controller_id": 48,
+                "reserved": 52,
+                "currents_a": 56,
+                "force_des_n": 184,
+                "field_des_t": 200,
             },
         ),
     }
@@ -120,6 +124,7 @@ def stamp(s: FrameStamp) -> dict:
         "seq": s.seq,
         "incarnation": s.incarnation,
         "capture_time_ns": s.capture_time_ns,
+        "grab_time_ns": s.grab_time_ns,
     }
 
 

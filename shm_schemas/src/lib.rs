@@ -14,12 +14,12 @@ use core::time::Duration;
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Version of the contract: payload layouts, their meaning and the service names. Every
-/// payload's iceoryx2 type name ends in `.v<CONTRACT_VERSION>` (e.g. `millinav::Pose.v2`), and
+/// payload's iceoryx2 type name ends in `.v<CONTRACT_VERSION>` (e.g. `millinav::Pose.v3`), and
 /// iceoryx2 refuses to connect ports whose type names differ, so a peer built against another
 /// version fails to open the services instead of misreading them. Bump it with any change a
 /// foreign reader would notice (see `CONTRACT.md`); `tests::type_names_carry_the_contract_version`
 /// checks every name.
-pub const CONTRACT_VERSION: u32 = 2;
+pub const CONTRACT_VERSION: u32 = 3;
 
 /// Largest number of coils a payload (and a serial frame) can carry. Arrays of coil values are
 /// this long; `active_coils` says how many leading entries are meaningful (the rest are zero).
@@ -122,17 +122,36 @@ pub struct FrameStamp {
     pub seq: u64,
     /// Incarnation (restart count) of the frame source.
     pub incarnation: u64,
-    /// Capture time on the run clock, ns.
+    /// Capture (exposure) time on the run clock, ns: when the scene looked like this frame.
     pub capture_time_ns: u64,
+    /// Grab time on the run clock, ns: when the frame entered the set (the camera service
+    /// dequeued it; the twin's simulated now). `grab − capture` is the camera's own latency,
+    /// which control measures and compensates; 0 when the source knows no grab time.
+    pub grab_time_ns: u64,
 }
 
 impl FrameStamp {
+    /// A stamp captured and grabbed at the same instant (a source that cannot tell them apart).
     pub const fn new(seq: u64, incarnation: u64, capture_time_ns: u64) -> Self {
         Self {
             seq,
             incarnation,
             capture_time_ns,
+            grab_time_ns: capture_time_ns,
         }
+    }
+
+    /// The same stamp grabbed at `grab_time_ns`.
+    pub const fn grabbed_at(self, grab_time_ns: u64) -> Self {
+        Self {
+            grab_time_ns,
+            ..self
+        }
+    }
+
+    /// The camera's latency this stamp shows (grab − capture), ns.
+    pub fn camera_latency_ns(&self) -> u64 {
+        self.grab_time_ns.saturating_sub(self.capture_time_ns)
     }
 
     /// Capture time on the run clock, s.
@@ -217,7 +236,7 @@ impl PixelMapping {
 /// Pixels map to the world by [`PixelMapping`]'s convention ([`FrameHeader::pixel_to_world_m`]).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::FrameHeader.v2")]
+#[type_name("millinav::FrameHeader.v3")]
 pub struct FrameHeader {
     pub stamp: FrameStamp,
     pub width: u32,
@@ -328,7 +347,7 @@ pub enum PoseSource {
 /// Robot pose estimated by vision.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::Pose.v2")]
+#[type_name("millinav::Pose.v3")]
 pub struct Pose {
     /// The frame this pose was measured in.
     pub stamp: FrameStamp,
@@ -376,7 +395,7 @@ pub mod zone {
 /// Steady-map flow estimate at the robot (flow service).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::FlowEstimate.v2")]
+#[type_name("millinav::FlowEstimate.v3")]
 pub struct FlowEstimate {
     /// The frame of the pose this estimate was made for.
     pub stamp: FrameStamp,
@@ -423,7 +442,7 @@ impl ControlMode {
 /// Coil currents requested by control for one frame.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::CoilCommand.v2")]
+#[type_name("millinav::CoilCommand.v3")]
 pub struct CoilCommand {
     /// The frame of the pose the command answers.
     pub stamp: FrameStamp,
@@ -467,7 +486,7 @@ pub enum LinkState {
 /// What coilbus applied and how healthy its link is.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::CoilStatus.v2")]
+#[type_name("millinav::CoilStatus.v3")]
 pub struct CoilStatus {
     /// Frame of the last applied command (`NO_FRAME` for a safe-state zero).
     pub frame_seq: u64,
@@ -512,7 +531,7 @@ impl CoilStatus {
 /// Ground truth of the digital twin. For metrics and tests only: no controller may read it.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::PlantTruth.v2")]
+#[type_name("millinav::PlantTruth.v3")]
 pub struct PlantTruth {
     pub frame_seq: u64,
     pub sim_time_ns: u64,
@@ -548,7 +567,7 @@ impl PlantTruth {
 /// Health beacon every service publishes on `HEALTH_SERVICE`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::Heartbeat.v2")]
+#[type_name("millinav::Heartbeat.v3")]
 pub struct Heartbeat {
     /// A `ServiceId` discriminant.
     pub service: u32,
@@ -573,23 +592,23 @@ macro_rules! assert_layout {
 }
 
 assert_layout!(Flag, size 1, align 1, {});
-assert_layout!(FrameStamp, size 24, align 8, {
-    seq @ 0, incarnation @ 8, capture_time_ns @ 16,
+assert_layout!(FrameStamp, size 32, align 8, {
+    seq @ 0, incarnation @ 8, capture_time_ns @ 16, grab_time_ns @ 24,
 });
-assert_layout!(FrameHeader, size 64, align 8, {
-    stamp @ 0, width @ 24, height @ 28, stride @ 32, pixel_format @ 36,
-    mm_per_px @ 40, origin_x_mm @ 48, origin_y_mm @ 56,
+assert_layout!(FrameHeader, size 72, align 8, {
+    stamp @ 0, width @ 32, height @ 36, stride @ 40, pixel_format @ 44,
+    mm_per_px @ 48, origin_x_mm @ 56, origin_y_mm @ 64,
 });
-assert_layout!(Pose, size 112, align 8, {
-    stamp @ 0, position_m @ 24, heading_rad @ 40, tip_m @ 48, centroid_m @ 64, tail_m @ 80,
-    confidence @ 96, source @ 104, valid @ 108, reserved @ 109,
+assert_layout!(Pose, size 120, align 8, {
+    stamp @ 0, position_m @ 32, heading_rad @ 48, tip_m @ 56, centroid_m @ 72, tail_m @ 88,
+    confidence @ 104, source @ 112, valid @ 116, reserved @ 117,
 });
-assert_layout!(FlowEstimate, size 56, align 8, {
-    stamp @ 0, velocity_mps @ 24, speed_mps @ 40, zone_flags @ 48, valid @ 52, reserved @ 53,
+assert_layout!(FlowEstimate, size 64, align 8, {
+    stamp @ 0, velocity_mps @ 32, speed_mps @ 48, zone_flags @ 56, valid @ 60, reserved @ 61,
 });
-assert_layout!(CoilCommand, size 208, align 8, {
-    stamp @ 0, control_incarnation @ 24, active_coils @ 32, mode @ 36, controller_id @ 40,
-    reserved @ 44, currents_a @ 48, force_des_n @ 176, field_des_t @ 192,
+assert_layout!(CoilCommand, size 216, align 8, {
+    stamp @ 0, control_incarnation @ 32, active_coils @ 40, mode @ 44, controller_id @ 48,
+    reserved @ 52, currents_a @ 56, force_des_n @ 184, field_des_t @ 200,
 });
 assert_layout!(CoilStatus, size 224, align 8, {
     frame_seq @ 0, applied_currents_a @ 8, link_state @ 136, active_coils @ 140,
@@ -718,7 +737,7 @@ mod tests {
                 "{name} does not end in {suffix}"
             );
         }
-        assert_eq!(type_name::<Pose>(), "millinav::Pose.v2");
+        assert_eq!(type_name::<Pose>(), "millinav::Pose.v3");
     }
 
     fn good_header() -> FrameHeader {

@@ -264,6 +264,15 @@ impl Drop for RunSet {
                 }
             }
         }
+        // A passing test leaves nothing behind (its recordings run to hundreds of MB); a failing
+        // one keeps its run directory for the post-mortem.
+        if let Some(base) = self.run_dir.parent() {
+            if std::thread::panicking() {
+                eprintln!("run {} kept for inspection: {}", self.name, base.display());
+            } else {
+                let _ = std::fs::remove_dir_all(base);
+            }
+        }
     }
 }
 

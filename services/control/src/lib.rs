@@ -4,6 +4,7 @@
 //! coils; the loop holds the orientation field briefly, then goes safe (zero currents).
 
 pub mod controllers;
+pub mod latency;
 pub mod reference;
 
 use std::time::{Duration, Instant};
@@ -32,6 +33,7 @@ use crate::controllers::{
     ControlInput, ControlTerms, Controller, ControllerKind, ForceSite, MpcGains, NominalModel,
     PidGains, SmcGains,
 };
+use crate::latency::{LatencyConfig, StatePredictor};
 use crate::reference::Reference;
 
 /// Allowance on top of `max_speed_mps · Δt` before a pose counts as a jump, so that
@@ -74,6 +76,8 @@ pub struct ControlConfig {
     /// all 12 instead of 8; the idle mid coils add force authority where the flow pushes
     /// hardest).
     pub use_all_coils: bool,
+    /// Latency compensation (`[control.latency]`).
+    pub latency: LatencyConfig,
 }
 
 impl Default for ControlConfig {
@@ -93,6 +97,7 @@ impl Default for ControlConfig {
             constrained_allocation: false,
             field_row_weight: 1e4,
             use_all_coils: false,
+            latency: LatencyConfig::default(),
         }
     }
 }
@@ -144,6 +149,13 @@ pub struct Decision {
     pub finished: bool,
     /// Why the pose was not used, if it was not.
     pub rejected: Option<&'static str>,
+    /// Actuation time − capture time of the pose (s): the delay the loop saw.
+    pub pose_age_s: f64,
+    /// The position the controller was fed (predicted for the actuation time when
+    /// compensating, else the measured one).
+    pub fed_position_m: Vector2<f64>,
+    /// The position predicted for the actuation time (whether fed or not).
+    pub predicted_position_m: Vector2<f64>,
 }
 
 /// Port-free control loop: feed it poses (with their flow estimate), get commands.
@@ -158,8 +170,12 @@ pub struct ControlLoop {
     robot: RobotParams,
     incarnation: u64,
     last_good: Option<(u64, Vector2<f64>)>,
+    /// Time and position of the last state fed to the controller (the velocity filter's input).
+    last_fed: Option<(u64, Vector2<f64>)>,
     velocity: Vector2<f64>,
     last_mode: ControlMode,
+    /// Predicts the state at actuation time from delayed poses and the issued forces.
+    predictor: StatePredictor,
     /// Poses and flow estimates that broke the contract (bad flag bytes); treated as invalid.
     pub violations: ContractViolations,
 }
@@ -187,6 +203,12 @@ impl ControlLoop {
         let controller = config
             .controller
             .build(&config.pid, &config.smc, &mpc, model);
+        // The predictor moves the whole body: the fluid it drags along counts (added mass).
+        let moving = NominalModel {
+            mass_kg: robot.mass_kg + robot.added_mass_kg,
+            ..model
+        };
+        let predictor = StatePredictor::new(config.latency.clone(), moving);
         Self {
             config,
             reference,
@@ -197,10 +219,19 @@ impl ControlLoop {
             robot,
             incarnation,
             last_good: None,
+            last_fed: None,
             velocity: Vector2::zeros(),
             last_mode: ControlMode::Safe,
+            predictor,
             violations: ContractViolations::default(),
         }
+    }
+
+    /// When a command computed now takes effect: now plus the delay no stamp shows.
+    fn actuation_ns(&self, now_ns: u64) -> u64 {
+        now_ns.saturating_add(millinav_kit::clock::secs_to_ns(
+            self.config.latency.unstamped_delay_ms * 1e-3,
+        ))
     }
 
     /// Coils the loop allocates for: the `active_coils` of every command.
@@ -229,8 +260,8 @@ impl ControlLoop {
         Vector2::new(h.cos(), h.sin()) * (self.config.field_magnitude_mt * 1e-3)
     }
 
-    /// Why a pose cannot be used, if it cannot.
-    fn check_pose(&mut self, pose: &Pose, t_ns: u64) -> Option<&'static str> {
+    /// Why a pose cannot be used at `actuation_ns`, if it cannot.
+    fn check_pose(&mut self, pose: &Pose, t_ns: u64, actuation_ns: u64) -> Option<&'static str> {
         match self.violations.check(services::POSE, pose.validity()) {
             Ok(true) => {}
             Ok(false) => return Some("pose flagged invalid by vision"),
@@ -238,6 +269,10 @@ impl ControlLoop {
         }
         if !pose.is_usable() {
             return Some("pose holds non-finite numbers");
+        }
+        let age_ms = actuation_ns.saturating_sub(t_ns) as f64 * 1e-6;
+        if age_ms > self.config.latency.max_pose_age_ms {
+            return Some("pose older than max_pose_age_ms");
         }
         let p = Vector2::new(pose.position_m[0], pose.position_m[1]);
         if !self.rig.phantom.contains(&p) {
@@ -253,13 +288,14 @@ impl ControlLoop {
         None
     }
 
-    /// Currents for a desired force and the orientation field at the robot's pose.
+    /// Currents for a desired force and the orientation field at the robot's pose, and the force
+    /// those currents make there (less than asked when the coils saturate).
     fn allocate(
         &self,
         position: &Vector2<f64>,
         heading: f64,
         force: &Vector2<f64>,
-    ) -> [f64; MAX_COILS] {
+    ) -> ([f64; MAX_COILS], Vector2<f64>) {
         let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
         let p3 = Vector3::new(position.x, position.y, 0.0);
         let omega0 = self.config.omega0_n_per_t;
@@ -278,20 +314,32 @@ impl ControlLoop {
         } else {
             allocate_limited(&a, &c, &self.limits).map(|a| a.currents_a)
         };
+        let mut achieved = Vector2::zeros();
         if let Ok(allocated) = allocated {
+            let wrench = &a * &allocated;
+            achieved = Vector2::new(wrench[0], wrench[1]);
             for (k, &id) in coil_ids.iter().enumerate() {
                 if let Some(current) = currents.get_mut(id) {
                     *current = allocated[k];
                 }
             }
         }
-        currents
+        (currents, achieved)
     }
 
     /// A safe-state (zero current) command answering `pose`, e.g. when an input is lost.
     pub fn safe(&mut self, pose: &Pose, why: &'static str) -> Decision {
-        let reference = self.reference.sample(pose.stamp.capture_time_s());
+        self.safe_at(pose, why, pose.stamp.grab_time_ns)
+    }
+
+    /// [`Self::safe`] with "now" on the run clock given.
+    pub fn safe_at(&mut self, pose: &Pose, why: &'static str, now_ns: u64) -> Decision {
+        let actuation_ns = self.actuation_ns(now_ns);
+        let reference = self.reference.sample(actuation_ns as f64 * 1e-9);
         self.controller.reset();
+        self.predictor.reset();
+        self.predictor
+            .commanded(actuation_ns, Vector2::zeros(), Vector2::zeros());
         self.last_mode = ControlMode::Safe;
         Decision {
             command: CoilCommand {
@@ -302,54 +350,65 @@ impl ControlLoop {
             reference_m: reference.position_m,
             finished: reference.finished,
             rejected: Some(why),
+            pose_age_s: actuation_ns.saturating_sub(pose.stamp.capture_time_ns) as f64 * 1e-9,
+            fed_position_m: Vector2::new(pose.position_m[0], pose.position_m[1]),
+            predicted_position_m: Vector2::new(pose.position_m[0], pose.position_m[1]),
         }
     }
 
-    /// One step: the command for `pose` given the flow estimate made for it (if any).
+    /// One step in lockstep: the command for `pose` given the flow estimate made for it (if
+    /// any), "now" being the frame's grab time (the twin holds its clock until the command).
     pub fn step(&mut self, pose: &Pose, flow: Option<&FlowEstimate>) -> Decision {
+        self.step_at(pose, flow, pose.stamp.grab_time_ns)
+    }
+
+    /// One step with "now" on the run clock given (real time: the run clock at this step).
+    pub fn step_at(&mut self, pose: &Pose, flow: Option<&FlowEstimate>, now_ns: u64) -> Decision {
         let t_ns = pose.stamp.capture_time_ns;
-        let reference = self.reference.sample(pose.stamp.capture_time_s());
+        let actuation_ns = self.actuation_ns(now_ns.max(t_ns));
+        let pose_age_s = (actuation_ns - t_ns) as f64 * 1e-9;
+        // The robot should be where the reference is when the command acts.
+        let reference = self.reference.sample(actuation_ns as f64 * 1e-9);
         let mut command = self.command_for(pose);
-        let rejected = self.check_pose(pose, t_ns);
+        let measured = Vector2::new(pose.position_m[0], pose.position_m[1]);
+        let rejected = self.check_pose(pose, t_ns, actuation_ns);
         if let Some(why) = rejected {
             let since_good = self
                 .last_good
                 .map(|(t_prev, _)| t_ns.saturating_sub(t_prev) as f64 * 1e-6);
             let hold = since_good.is_some_and(|ms| ms <= self.config.hold_timeout_ms);
+            let mut held_force = Vector2::zeros();
             if hold {
                 let (_, p) = self.last_good.unwrap_or((0, Vector2::zeros()));
                 command.mode = ControlMode::Hold as u32;
                 let heading = self.config.field_heading_deg.to_radians();
-                command.currents_a = self.allocate(&p, heading, &Vector2::zeros());
+                let (currents, achieved) = self.allocate(&p, heading, &Vector2::zeros());
+                command.currents_a = currents;
+                held_force = achieved;
             } else {
                 command.mode = ControlMode::Safe as u32;
             }
             self.last_mode = ControlMode::from_u32(command.mode).unwrap_or(ControlMode::Safe);
             self.controller.reset();
+            self.predictor.reset();
+            self.predictor
+                .commanded(actuation_ns, held_force, Vector2::zeros());
             return Decision {
                 command,
                 terms: ControlTerms::default(),
                 reference_m: reference.position_m,
                 finished: reference.finished,
                 rejected: Some(why),
+                pose_age_s,
+                fed_position_m: measured,
+                predicted_position_m: measured,
             };
         }
-        let position = Vector2::new(pose.position_m[0], pose.position_m[1]);
-        let dt = match self.last_good {
-            Some((t_prev, p_prev)) if t_ns > t_prev && self.last_mode == ControlMode::Track => {
-                let dt = (t_ns - t_prev) as f64 * 1e-9;
-                let raw = (position - p_prev) / dt;
-                let tau = (self.config.velocity_filter_ms * 1e-3).max(1e-6);
-                self.velocity += (raw - self.velocity) * (1.0 - (-dt / tau).exp());
-                dt
-            }
-            Some((t_prev, _)) if t_ns == t_prev => 0.0,
-            _ => {
-                self.velocity = Vector2::zeros();
-                0.0
-            }
-        };
-        self.last_good = Some((t_ns, position));
+        let tracking = self.last_mode == ControlMode::Track;
+        if !tracking {
+            self.predictor.reset();
+        }
+        self.last_good = Some((t_ns, measured));
         let flow_valid = flow.map(|f| self.violations.check(services::FLOW, f.validity()));
         let (flow_mps, high_disturbance) = match (flow, flow_valid) {
             (Some(f), Some(Ok(true))) if f.stamp.same_frame(&pose.stamp) => (
@@ -358,9 +417,37 @@ impl ControlLoop {
             ),
             _ => (Vector2::zeros(), false),
         };
+        let predicted = self
+            .predictor
+            .predict(measured, t_ns, actuation_ns, flow_mps);
+        // Smith predictor: the measurement plus the motion the model predicts over the delay
+        // (exactly the measurement when there is none). The controllers see the predicted
+        // positions at actuation times as they would see undelayed poses, velocity included
+        // (the same filtered finite differences, so their tuning carries over).
+        let (fed_ns, position_m) = if self.config.latency.compensate {
+            (actuation_ns, measured + predicted.motion_ahead_m)
+        } else {
+            (t_ns, measured)
+        };
+        let dt = match self.last_fed {
+            Some((t_prev, p_prev)) if fed_ns > t_prev && tracking => {
+                let dt = (fed_ns - t_prev) as f64 * 1e-9;
+                let raw = (position_m - p_prev) / dt;
+                let tau = (self.config.velocity_filter_ms * 1e-3).max(1e-6);
+                self.velocity += (raw - self.velocity) * (1.0 - (-dt / tau).exp());
+                dt
+            }
+            Some((t_prev, _)) if fed_ns == t_prev => 0.0,
+            _ => {
+                self.velocity = Vector2::zeros();
+                0.0
+            }
+        };
+        self.last_fed = Some((fed_ns, position_m));
         let input = ControlInput {
             dt_s: dt,
-            position_m: position,
+            delay_s: pose_age_s,
+            position_m,
             velocity_mps: self.velocity,
             reference,
             flow_mps,
@@ -371,7 +458,10 @@ impl ControlLoop {
         command.force_des_n = [force.x, force.y];
         let field = self.desired_field();
         command.field_des_t = [field.x, field.y];
-        command.currents_a = self.allocate(&position, pose.heading_rad, &force);
+        // The field is allocated where the robot will be when the command acts.
+        let (currents, achieved) = self.allocate(&position_m, pose.heading_rad, &force);
+        command.currents_a = currents;
+        self.predictor.commanded(actuation_ns, achieved, flow_mps);
         self.last_mode = ControlMode::Track;
         Decision {
             command,
@@ -379,6 +469,9 @@ impl ControlLoop {
             reference_m: reference.position_m,
             finished: reference.finished,
             rejected: None,
+            pose_age_s,
+            fed_position_m: position_m,
+            predicted_position_m: measured + predicted.motion_ahead_m,
         }
     }
 }
@@ -436,6 +529,12 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
     }
     if let Some(limits) = &config.limits {
         limits.validate().config_context(field("limits"))?;
+    }
+    if let Some((name, why)) = config.latency.invalid_field() {
+        return Err(ConfigError::new(format!(
+            "scenario {}: [control.latency] {name} {why}",
+            scenario.path.display()
+        )));
     }
     let rig = scenario.rig()?;
     let reference = Reference::new(
@@ -501,6 +600,7 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
     recording::scalar(rec, "control/force_des_n/x", d.command.force_des_n[0]);
     recording::scalar(rec, "control/force_des_n/y", d.command.force_des_n[1]);
     recording::scalar(rec, "control/mode", f64::from(d.command.mode));
+    recording::scalar(rec, "control/pose_age_ms", d.pose_age_s * 1e3);
     for (i, c) in d.command.currents().unwrap_or_default().iter().enumerate() {
         recording::scalar(rec, &format!("control/current_a/{i}"), *c);
     }
@@ -512,6 +612,17 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
         ]])
         .with_radii([0.8]),
     );
+    if d.rejected.is_none() {
+        // Where the loop believes the robot is when this command acts.
+        let _ = rec.log(
+            "world/robot/predicted",
+            &rerun::Points2D::new([[
+                (d.predicted_position_m.x * 1e3) as f32,
+                (d.predicted_position_m.y * 1e3) as f32,
+            ]])
+            .with_radii([0.6]),
+        );
+    }
     if pose.is_usable() {
         let _ = rec.log(
             "world/robot/heading",
@@ -574,6 +685,9 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow
     // bring the coils to zero within one command deadline, like losing the poses does.
     let mut last_flow = Instant::now();
 
+    // "Now" for latency: lockstep holds the twin's clock at the frame's grab time until the
+    // command arrives; in real time it is the run clock.
+    let realtime = scenario.run.mode == millinav_kit::scenario::ClockMode::Realtime;
     let mut service_loop = ServiceLoop::new();
     let pose_input = service_loop.input_with_deadline(&poses, deadlines::POSE);
     service_loop.output(&commands);
@@ -603,10 +717,15 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow
         if flow.is_some() {
             last_flow = Instant::now();
         }
-        let decision = if last_flow.elapsed() > FLOW_LOST_AFTER {
-            control.safe(&pose, "flow estimates lost")
+        let now_ns = if realtime {
+            rt.env.run_clock_ns()
         } else {
-            control.step(&pose, flow.as_ref())
+            pose.stamp.grab_time_ns
+        };
+        let decision = if last_flow.elapsed() > FLOW_LOST_AFTER {
+            control.safe_at(&pose, "flow estimates lost", now_ns)
+        } else {
+            control.step_at(&pose, flow.as_ref(), now_ns)
         };
         commands.send(decision.command)?;
         recording::set_time(&rt.rec, pose.stamp.capture_time_ns, pose.stamp.seq);

@@ -37,6 +37,7 @@ fn hold_against(
     for _ in 0..(seconds / dt) as usize {
         let input = ControlInput {
             dt_s: dt,
+            delay_s: 0.0,
             position_m: x,
             velocity_mps: v,
             reference,

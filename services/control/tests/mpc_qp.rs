@@ -15,6 +15,7 @@ const MODEL: NominalModel = NominalModel {
 fn input() -> ControlInput {
     ControlInput {
         dt_s: 0.01,
+        delay_s: 0.0,
         position_m: Vector2::new(-0.012, 0.006),
         velocity_mps: Vector2::new(2.0e-4, -1.0e-4),
         reference: ReferenceSample {

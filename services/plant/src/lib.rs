@@ -404,8 +404,17 @@ impl<'s> Twin<'s> {
         let (seq, state) = (self.seq, &self.state);
         let shown = self.history.front().unwrap_or(state);
         let geometry = &self.geometry;
+        // Stamped like a camera whose driver timestamps the exposure: captured when the scene
+        // looked like the shown state, grabbed now.
+        let shown_age_ns = millinav_kit::clock::secs_to_ns(state.time_s - shown.time_s);
+        let stamp = FrameStamp::new(
+            seq,
+            self.incarnation,
+            run_time_ns.saturating_sub(shown_age_ns),
+        )
+        .grabbed_at(run_time_ns);
         let header = FrameHeader {
-            stamp: FrameStamp::new(seq, self.incarnation, run_time_ns),
+            stamp,
             width: geometry.width_px,
             height: geometry.height_px,
             stride: geometry.width_px * FRAME_CHANNELS,

@@ -13,8 +13,9 @@
 //!   with ω = 2π/T, quantised to 1/256 and applied to the whole frame with integer arithmetic
 //!   (one vectorised pass);
 //! - latency: `latency_frames` is applied by the plant loop, which keeps a ring of past states
-//!   and renders frame k from the state of frame k − latency (the header's capture time stays
-//!   the publish time, like a camera timestamped on arrival: the delay is hidden, as on a rig);
+//!   and renders frame k from the state of frame k − latency; the stamp's capture time is that
+//!   state's time and its grab time the publish time, like a camera whose driver timestamps the
+//!   exposure (V4L2 buffer timestamps), so control can measure the delay;
 //! - ground truth for datasets: [`Camera::render_sample`] returns the frame, a per-pixel class
 //!   mask ([`MASK_BODY`], [`MASK_CAP`], [`MASK_MAGNET`], 0 elsewhere; pixel centre inside the
 //!   capsule, before blur) and the tip/centroid/tail keypoints.

@@ -81,6 +81,7 @@ impl ControllerBench {
         let p_prev = position(&self.reference, k.saturating_sub(1));
         ControlInput {
             dt_s: PERIOD_S,
+            delay_s: 0.0,
             position_m: p,
             velocity_mps: (p - p_prev) / PERIOD_S,
             reference: self.reference.sample(t),

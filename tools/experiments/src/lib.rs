@@ -236,9 +236,9 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
     let mut trace = Vec::with_capacity(frames as usize + 1);
     let now = std::time::Instant::now();
     // The camera's latency as the plant applies it: frame k shows the state of frame k − L,
-    // stamped with frame k's time (the delay is hidden, as on a rig).
+    // captured at that state's time and grabbed at frame k's.
     let latency = plant_config.camera.latency_frames as usize;
-    let mut seen: VecDeque<(Vector2<f64>, f64)> = VecDeque::with_capacity(latency + 1);
+    let mut seen: VecDeque<(Vector2<f64>, f64, f64)> = VecDeque::with_capacity(latency + 1);
     for seq in 0..=frames {
         trace.push(TraceRow {
             time_s: state.time_s,
@@ -253,14 +253,15 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
         if seq == frames {
             break;
         }
-        seen.push_back((state.position_m, state.heading_rad));
+        seen.push_back((state.position_m, state.heading_rad, state.time_s));
         while seen.len() > latency + 1 {
             seen.pop_front();
         }
-        let (seen_position, seen_heading) = seen[0];
+        let (seen_position, seen_heading, seen_time_s) = seen[0];
         let measured = seen_position + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng));
         let pose = Pose {
-            stamp: FrameStamp::new(seq, 0, secs_to_ns(state.time_s)),
+            stamp: FrameStamp::new(seq, 0, secs_to_ns(seen_time_s))
+                .grabbed_at(secs_to_ns(state.time_s)),
             position_m: [measured.x, measured.y],
             heading_rad: seen_heading,
             confidence: 1.0,

@@ -50,6 +50,14 @@ struct Args {
     /// for the paper's 10 Hz loop.
     #[arg(long)]
     frame_period_ms: Option<f64>,
+    /// Camera latency (ms) on top of the frame period, instead of the base scenario's
+    /// `[plant.camera] latency_frames`: a whole number of frame periods, e.g. 100 at 10 Hz.
+    #[arg(long)]
+    camera_latency_ms: Option<f64>,
+    /// Feed the controllers the delayed pose as measured (`[control.latency] compensate =
+    /// false`) instead of the state predicted for the actuation time.
+    #[arg(long)]
+    no_latency_compensation: bool,
     /// Skip the per-run Rerun recordings of fast mode (`<out>/runs/<cell>.rrd`; process mode
     /// always keeps each run's `run.rrd` under `<out>/runs/<cell>/run/`).
     #[arg(long)]
@@ -98,7 +106,8 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The base scenario, with `--frame-period-ms` applied.
+/// The base scenario, with `--frame-period-ms`, `--camera-latency-ms` and
+/// `--no-latency-compensation` applied.
 fn load_base(args: &Args) -> anyhow::Result<Scenario> {
     let mut base = Scenario::load(&args.base)
         .with_context(|| format!("base scenario {}", args.base.display()))?;
@@ -109,7 +118,80 @@ fn load_base(args: &Args) -> anyhow::Result<Scenario> {
         );
         base.run.frame_period_ms = period;
     }
+    if let Some(latency_ms) = args.camera_latency_ms {
+        let frames = latency_ms / base.run.frame_period_ms;
+        anyhow::ensure!(
+            latency_ms.is_finite()
+                && latency_ms >= 0.0
+                && (frames - frames.round()).abs() < 1e-6
+                && frames <= 100.0,
+            "--camera-latency-ms must be a whole number of frame periods ({} ms) up to 100 of \
+             them, got {latency_ms}",
+            base.run.frame_period_ms
+        );
+        set_in_sections(
+            &mut base.sections,
+            &["plant", "camera", "latency_frames"],
+            toml::Value::Integer(frames.round() as i64),
+        )?;
+    }
+    if args.no_latency_compensation {
+        set_in_sections(
+            &mut base.sections,
+            &["control", "latency", "compensate"],
+            toml::Value::Boolean(false),
+        )?;
+    }
     Ok(base)
+}
+
+/// The camera latency and whether control compensates it, for the table's header.
+fn latency_note(base: &Scenario) -> String {
+    let get = |path: &[&str]| {
+        path.iter()
+            .try_fold(None::<&toml::Value>, |at, key| {
+                let table = match at {
+                    None => Some(&base.sections),
+                    Some(value) => value.as_table(),
+                };
+                table.and_then(|t| t.get(*key)).map(Some)
+            })
+            .flatten()
+    };
+    let frames = get(&["plant", "camera", "latency_frames"])
+        .and_then(toml::Value::as_integer)
+        .unwrap_or(0);
+    let compensated = get(&["control", "latency", "compensate"])
+        .and_then(toml::Value::as_bool)
+        .unwrap_or(true);
+    format!(
+        "{} ms extra camera latency ({})",
+        frames as f64 * base.run.frame_period_ms,
+        if compensated {
+            "compensated"
+        } else {
+            "not compensated"
+        }
+    )
+}
+
+/// Sets `path` (tables, then a key) in a scenario's tables, creating the tables on the way.
+fn set_in_sections(
+    sections: &mut toml::Table,
+    path: &[&str],
+    value: toml::Value,
+) -> anyhow::Result<()> {
+    let (key, tables) = path.split_last().context("empty path")?;
+    let mut table = sections;
+    for name in tables {
+        table = table
+            .entry(name.to_string())
+            .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+            .as_table_mut()
+            .with_context(|| format!("base scenario: {name} is not a table"))?;
+    }
+    table.insert(key.to_string(), value);
+    Ok(())
 }
 
 /// The matrix's cells that `--beyond`, `--controllers` and `--only` select (at least one).
@@ -260,8 +342,9 @@ fn write_tables(
     let table = report::markdown_table(
         outcomes,
         &format!(
-            "{mode}, {} ms frame period, rig {} ({})",
+            "{mode}, {} ms frame period, {}, rig {} ({})",
             base.run.frame_period_ms,
+            latency_note(base),
             rig.name,
             rig.path
                 .strip_prefix(fieldmaps::data_root())

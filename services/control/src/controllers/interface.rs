@@ -9,6 +9,9 @@ use crate::reference::ReferenceSample;
 pub struct ControlInput {
     /// Time since the previous step (from capture timestamps, never the wall clock).
     pub dt_s: f64,
+    /// Capture → actuation delay of this pose (s). With latency compensation the state is
+    /// predicted across it, but a disturbance the model does not know still shows this late.
+    pub delay_s: f64,
     pub position_m: Vector2<f64>,
     /// Estimated robot velocity (filtered finite differences of poses).
     pub velocity_mps: Vector2<f64>,

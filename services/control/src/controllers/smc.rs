@@ -43,6 +43,9 @@ pub struct SmcGains {
     /// is kept at or below this many radians per sample (ω_n·Δt), with ζ unchanged. The
     /// default ω_n (2 Hz) is 0.13 rad per sample at 100 Hz but 1.26 at the paper's 10 Hz.
     pub sampled_bandwidth_rad: f64,
+    /// With `auto_schedule`: the DOB's time constant η is kept at or above this many times
+    /// the measured capture → actuation delay.
+    pub delay_eta_factor: f64,
 }
 
 impl Default for SmcGains {
@@ -66,6 +69,7 @@ impl Default for SmcGains {
             schedule_ref_speed_mps: 0.07,
             sampled_gain_fraction: 0.5,
             sampled_bandwidth_rad: 0.5,
+            delay_eta_factor: 2.0,
         }
     }
 }
@@ -111,11 +115,15 @@ impl SmcDob {
         let drag_per_sample = self.model.linear_drag_n_s_per_m * dt / self.model.mass_kg;
         let budget = g.sampled_bandwidth_rad.max(1e-3) * (1.0 + drag_per_sample);
         let omega_scale = (budget / (omega_n * dt)).min(1.0);
+        // The observer sees a disturbance only `delay_s` after it acts; its filter must be
+        // slower than that (phase lag ω·D at its bandwidth 1/η), or it feeds the delay back.
+        let eta_s = (lerp(g.eta_s, g.flow_eta_s) * (1.0 + 0.75 * zone))
+            .max(g.delay_eta_factor * input.delay_s.clamp(0.0, 1.0));
         SmcGains {
             k1: g.k1 * omega_scale,
             k2: g.k2 * omega_scale * omega_scale,
             k4_n,
-            eta_s: lerp(g.eta_s, g.flow_eta_s) * (1.0 + 0.75 * zone),
+            eta_s,
             phi_m: phi_m.max(g.gamma * k4_n / sampled_limit),
             ..g.clone()
         }
@@ -201,6 +209,7 @@ mod tests {
     fn input(dt_s: f64) -> ControlInput {
         ControlInput {
             dt_s,
+            delay_s: 0.0,
             position_m: Vector2::zeros(),
             velocity_mps: Vector2::zeros(),
             reference: ReferenceSample {

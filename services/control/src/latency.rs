@@ -1,0 +1,405 @@
+//! Latency compensation: a pose describes the robot at its frame's capture time, but the command
+//! computed from it acts later (camera, inference, flow, serial link). Every controller is fed
+//! the state predicted for the command's actuation time instead of the stale measurement.
+//!
+//! The predictor is a Smith predictor: the measured position plus the motion the nominal model
+//! (`m v̇ = F + d̂ − c (v − u)`, m including the added mass) predicts from the capture time to
+//! the actuation time under the force history the loop actually commanded (the allocation's
+//! achieved force, piecewise constant from each command's actuation time). The model's velocity
+//! runs open loop on the commands (a velocity differentiated from delayed, noisy poses would
+//! make the prediction as noisy as the poses); `d̂` is what the nominal model lacks (flow the map
+//! does not know, drag it underestimates), learned slowly from how far the measured motion
+//! between two poses differs from the model's, so that a steady push is predicted too
+//! (a filtered Smith predictor).
+//!
+//! The delay is measured per pose: actuation time − capture time, where the actuation time is
+//! "now" (the frame's grab time in lockstep, the run clock in real time) plus the delay the
+//! stamps cannot show (`unstamped_delay_ms`: serial link, amplifier, a camera without exposure
+//! timestamps).
+
+use std::collections::VecDeque;
+
+use nalgebra::{Matrix3, Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::controllers::NominalModel;
+
+/// `[control.latency]` of a scenario.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct LatencyConfig {
+    /// Feed controllers the state predicted for the actuation time (false: the measured pose
+    /// and finite-difference velocity, as if there were no delay).
+    pub compensate: bool,
+    /// Delay after "now" that no timestamp shows: serial link, board, amplifier, or the whole
+    /// camera latency for a camera that stamps frames on arrival (ms).
+    pub unstamped_delay_ms: f64,
+    /// Poses older than this at actuation time are not used (ms): the loop holds, then goes
+    /// safe, as for a lost pose.
+    pub max_pose_age_ms: f64,
+    /// Time constant of the predictor's disturbance estimate (ms); 0 turns it off (plain
+    /// Smith predictor). Slower than the controllers' own observers, so that it only carries
+    /// the steady part of what the model lacks.
+    pub disturbance_time_constant_ms: f64,
+}
+
+impl Default for LatencyConfig {
+    fn default() -> Self {
+        Self {
+            compensate: true,
+            unstamped_delay_ms: 0.0,
+            max_pose_age_ms: 500.0,
+            disturbance_time_constant_ms: 1000.0,
+        }
+    }
+}
+
+impl LatencyConfig {
+    /// The first field that is out of range, with why.
+    pub fn invalid_field(&self) -> Option<(&'static str, String)> {
+        let checks: [(&'static str, f64, bool); 3] = [
+            ("unstamped_delay_ms", self.unstamped_delay_ms, false),
+            ("max_pose_age_ms", self.max_pose_age_ms, true),
+            (
+                "disturbance_time_constant_ms",
+                self.disturbance_time_constant_ms,
+                false,
+            ),
+        ];
+        checks.into_iter().find_map(|(name, value, strict)| {
+            let fine = value.is_finite() && if strict { value > 0.0 } else { value >= 0.0 };
+            (!fine).then(|| {
+                let relation = if strict { "> 0" } else { ">= 0" };
+                (name, format!("must be finite and {relation}, got {value}"))
+            })
+        })
+    }
+}
+
+/// A force held from `start_ns` until the next segment starts.
+#[derive(Debug, Clone, Copy)]
+struct ForceSegment {
+    start_ns: u64,
+    /// Achieved magnetic force, N.
+    force_n: Vector2<f64>,
+    /// Flow velocity the nominal drag acts against, m/s.
+    flow_mps: Vector2<f64>,
+}
+
+/// The model at one instant: per axis (x, y) the state (p, v, d̂). Positions are relative (only
+/// the motion between two instants is used).
+#[derive(Debug, Clone, Copy)]
+struct ModelState {
+    time_ns: u64,
+    state: [Vector3<f64>; 2],
+}
+
+/// What the predictor hands the controller for one pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Predicted {
+    /// The motion the model predicts from the capture time to the actuation time.
+    pub motion_ahead_m: Vector2<f64>,
+    /// The model's velocity at the actuation time.
+    pub velocity_mps: Vector2<f64>,
+    /// Steady disturbance force the predictor attributes to what the nominal model lacks, N.
+    pub disturbance_n: Vector2<f64>,
+    /// Actuation time − capture time, s.
+    pub horizon_s: f64,
+}
+
+/// Force history and the model at the last capture time.
+pub struct StatePredictor {
+    config: LatencyConfig,
+    model: NominalModel,
+    segments: VecDeque<ForceSegment>,
+    /// The model at the last pose's capture time, and that pose's position.
+    last: Option<(ModelState, Vector2<f64>)>,
+}
+
+/// Longest span of force history kept (ns): far more than any usable pose age.
+const HISTORY_NS: u64 = 5_000_000_000;
+
+impl StatePredictor {
+    pub fn new(config: LatencyConfig, model: NominalModel) -> Self {
+        Self {
+            config,
+            model,
+            segments: VecDeque::new(),
+            last: None,
+        }
+    }
+
+    pub fn config(&self) -> &LatencyConfig {
+        &self.config
+    }
+
+    /// Forgets the model state (after a rejected pose or a hold); the force history stays,
+    /// since it is what the coils did.
+    pub fn reset(&mut self) {
+        self.last = None;
+    }
+
+    /// Records that `force_n` acts from `start_ns` on (the achieved force of a command, zero for
+    /// hold and safe), against flow `flow_mps`.
+    pub fn commanded(&mut self, start_ns: u64, force_n: Vector2<f64>, flow_mps: Vector2<f64>) {
+        // A command can only replace what has not started yet.
+        while self.segments.back().is_some_and(|s| s.start_ns >= start_ns) {
+            self.segments.pop_back();
+        }
+        self.segments.push_back(ForceSegment {
+            start_ns,
+            force_n,
+            flow_mps,
+        });
+        let oldest_needed = self
+            .last
+            .map_or(start_ns, |(m, _)| m.time_ns.min(start_ns))
+            .saturating_sub(HISTORY_NS);
+        while self.segments.len() > 1 && self.segments[1].start_ns <= oldest_needed {
+            self.segments.pop_front();
+        }
+    }
+
+    /// Takes the position measured at `capture_ns` and predicts the motion until
+    /// `actuation_ns`. `flow_mps` is the flow estimate for this pose (used before any command
+    /// was recorded).
+    pub fn predict(
+        &mut self,
+        position_m: Vector2<f64>,
+        capture_ns: u64,
+        actuation_ns: u64,
+        flow_mps: Vector2<f64>,
+    ) -> Predicted {
+        let mut now = match self.last {
+            Some((previous, previous_position)) if capture_ns > previous.time_ns => {
+                let mut at_capture = self.propagate(previous, capture_ns, flow_mps);
+                self.learn_disturbance(&previous, &mut at_capture, position_m - previous_position);
+                at_capture
+            }
+            Some((previous, _)) if capture_ns == previous.time_ns => previous,
+            _ => ModelState {
+                time_ns: capture_ns,
+                state: [Vector3::zeros(); 2],
+            },
+        };
+        // Positions are relative: re-anchor at each pose so they stay small.
+        for axis in 0..2 {
+            now.state[axis][0] = 0.0;
+        }
+        self.last = Some((now, position_m));
+        let ahead = self.propagate(now, actuation_ns.max(capture_ns), flow_mps);
+        Predicted {
+            motion_ahead_m: Vector2::new(ahead.state[0][0], ahead.state[1][0]),
+            velocity_mps: Vector2::new(ahead.state[0][1], ahead.state[1][1]),
+            disturbance_n: Vector2::new(ahead.state[0][2], ahead.state[1][2]),
+            horizon_s: actuation_ns.saturating_sub(capture_ns) as f64 * 1e-9,
+        }
+    }
+
+    /// Moves d̂ towards the force that would have made the model's motion since `previous`
+    /// match the measured one (`measured_motion`), with the configured time constant.
+    fn learn_disturbance(
+        &self,
+        previous: &ModelState,
+        at_capture: &mut ModelState,
+        measured_motion: Vector2<f64>,
+    ) {
+        let tau_s = self.config.disturbance_time_constant_ms * 1e-3;
+        if tau_s <= 0.0 {
+            return;
+        }
+        let dt = (at_capture.time_ns - previous.time_ns) as f64 * 1e-9;
+        let alpha = 1.0 - (-dt / tau_s).exp();
+        for axis in 0..2 {
+            let model_motion = at_capture.state[axis][0] - previous.state[axis][0];
+            // A steady force d moves the body at d / c: the missing force behind a velocity
+            // mismatch.
+            let missing =
+                (measured_motion[axis] - model_motion) / dt * self.model.linear_drag_n_s_per_m;
+            at_capture.state[axis][2] += alpha * missing;
+        }
+    }
+
+    /// The model carried from its time to `to_ns` under the recorded forces.
+    fn propagate(
+        &self,
+        mut model: ModelState,
+        to_ns: u64,
+        fallback_flow_mps: Vector2<f64>,
+    ) -> ModelState {
+        let mut t = model.time_ns;
+        while t < to_ns {
+            // The segment acting at t (none yet: no force, the current flow).
+            let index = self.segments.partition_point(|s| s.start_ns <= t);
+            let (force, flow) = match index.checked_sub(1) {
+                Some(i) => (self.segments[i].force_n, self.segments[i].flow_mps),
+                None => (Vector2::zeros(), fallback_flow_mps),
+            };
+            let next = self
+                .segments
+                .get(index)
+                .map_or(to_ns, |s| s.start_ns.min(to_ns));
+            let h = (next - t) as f64 * 1e-9;
+            let (phi, gamma) = self.transition(h);
+            for axis in 0..2 {
+                let drive = (force[axis] + self.model.linear_drag_n_s_per_m * flow[axis])
+                    / self.model.mass_kg;
+                model.state[axis] = phi * model.state[axis] + gamma * drive;
+            }
+            t = next;
+        }
+        model.time_ns = to_ns.max(model.time_ns);
+        model
+    }
+
+    /// Exact transition of (p, v, d) over `h` seconds, and the response to a constant
+    /// acceleration input (F + c u)/m.
+    fn transition(&self, h: f64) -> (Matrix3<f64>, Vector3<f64>) {
+        let m = self.model.mass_kg;
+        let a = self.model.linear_drag_n_s_per_m / m;
+        // (1 − e^{−ah})/a and (h − (1 − e^{−ah})/a)/a, with their a → 0 limits h and h²/2.
+        let (decay, first, second) = if a * h < 1e-6 {
+            (1.0 - a * h, h, h * h / 2.0)
+        } else {
+            let decay = (-a * h).exp();
+            let first = (1.0 - decay) / a;
+            (decay, first, (h - first) / a)
+        };
+        let phi = Matrix3::new(1.0, first, second / m, 0.0, decay, first / m, 0.0, 0.0, 1.0);
+        (phi, Vector3::new(second, first, 0.0))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MODEL: NominalModel = NominalModel {
+        mass_kg: 5e-5,
+        linear_drag_n_s_per_m: 5.6e-4,
+    };
+
+    fn ns(t_s: f64) -> u64 {
+        (t_s * 1e9).round() as u64
+    }
+
+    /// The nominal model simulated finely, with a constant extra force `d`.
+    fn simulate(
+        forces: &[(f64, Vector2<f64>)],
+        d: Vector2<f64>,
+        until_s: f64,
+    ) -> Vec<(f64, Vector2<f64>)> {
+        let (mut p, mut v) = (Vector2::zeros(), Vector2::zeros());
+        let dt = 1e-5;
+        let mut out = Vec::new();
+        let steps = (until_s / dt).round() as usize;
+        for k in 0..=steps {
+            let t = k as f64 * dt;
+            out.push((t, p));
+            let f = forces
+                .iter()
+                .rev()
+                .find(|(start, _)| *start <= t + 1e-12)
+                .map_or(Vector2::zeros(), |(_, f)| *f);
+            let a = (f + d - v * MODEL.linear_drag_n_s_per_m) / MODEL.mass_kg;
+            v += a * dt;
+            p += v * dt;
+        }
+        out
+    }
+
+    /// With the delay known and the model right, the prediction lands on the truth: the
+    /// predictor learns the unknown steady force from delayed positions and the commands explain
+    /// the rest. Without the disturbance estimate the steady push is missed.
+    #[test]
+    fn predicts_the_true_position_across_the_delay() {
+        let period = 0.1;
+        let delay = 0.2;
+        let d = Vector2::new(1e-5, -2e-5);
+        // A force that changes every frame, as a controller's would.
+        let forces: Vec<(f64, Vector2<f64>)> = (0..80)
+            .map(|k| {
+                let t = k as f64 * period;
+                (
+                    t,
+                    Vector2::new(2e-5 * (t * 3.0).sin(), 1e-5 * (t * 1.7).cos()),
+                )
+            })
+            .collect();
+        let truth = simulate(&forces, d, 8.0);
+        let at = |t: f64| truth[(t / 1e-5).round() as usize].1;
+        let worst_error = |disturbance_time_constant_ms: f64| {
+            let mut predictor = StatePredictor::new(
+                LatencyConfig {
+                    disturbance_time_constant_ms,
+                    ..LatencyConfig::default()
+                },
+                MODEL,
+            );
+            let mut worst: f64 = 0.0;
+            let mut stale: f64 = 0.0;
+            for (k, (start, force)) in forces.iter().enumerate() {
+                predictor.commanded(ns(*start), *force, Vector2::zeros());
+                let now = *start;
+                if now < delay {
+                    continue;
+                }
+                let captured = now - delay;
+                let predicted = predictor.predict(
+                    at(captured),
+                    ns(captured),
+                    ns(now + period),
+                    Vector2::zeros(),
+                );
+                if k > 60 {
+                    let target = at(now + period);
+                    worst = worst.max((at(captured) + predicted.motion_ahead_m - target).norm());
+                    stale = stale.max((at(captured) - target).norm());
+                }
+            }
+            (worst, stale)
+        };
+        let (learned, stale) = worst_error(300.0);
+        // The robot moves millimetres over the horizon; the stale pose is that far off.
+        assert!(stale > 1e-3, "stale pose error {stale} m");
+        assert!(learned < 2e-5, "worst prediction error {learned} m");
+        let (plain, _) = worst_error(0.0);
+        assert!(
+            plain > 10.0 * learned,
+            "plain Smith {plain} m vs {learned} m"
+        );
+    }
+
+    /// Without any delay the prediction is the measurement.
+    #[test]
+    fn zero_horizon_predicts_no_motion() {
+        let mut predictor = StatePredictor::new(LatencyConfig::default(), MODEL);
+        let predicted = predictor.predict(
+            Vector2::new(0.01, -0.02),
+            ns(1.0),
+            ns(1.0),
+            Vector2::zeros(),
+        );
+        assert_eq!(predicted.motion_ahead_m, Vector2::zeros());
+        assert_eq!(predicted.horizon_s, 0.0);
+    }
+
+    #[test]
+    fn a_newer_command_replaces_a_pending_one() {
+        let mut predictor = StatePredictor::new(LatencyConfig::default(), MODEL);
+        predictor.commanded(ns(1.0), Vector2::new(1.0, 0.0), Vector2::zeros());
+        predictor.commanded(ns(1.0), Vector2::new(2.0, 0.0), Vector2::zeros());
+        assert_eq!(predictor.segments.len(), 1);
+        assert_eq!(predictor.segments[0].force_n.x, 2.0);
+    }
+
+    #[test]
+    fn bad_fields_are_named() {
+        let config = LatencyConfig {
+            max_pose_age_ms: 0.0,
+            ..LatencyConfig::default()
+        };
+        assert_eq!(config.invalid_field().unwrap().0, "max_pose_age_ms");
+        assert!(LatencyConfig::default().invalid_field().is_none());
+    }
+}

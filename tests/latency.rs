@@ -1,0 +1,97 @@
+//! Latency compensation (issue 21, point 1) in fast mode: with one extra camera frame at the
+//! paper's 10 Hz (+100 ms) and +50 ms at 100 Hz, the auto-scheduled SMC-DOB fed the state
+//! predicted for the actuation time (`[control.latency] compensate = true`, the default)
+//! completes the still-fluid cells (and at 100 Hz the 7 cm/s cell) below the paper's RMSE, and
+//! the same controller fed the stale pose loses the robot or tracks 5x worse than the paper. The process set stamps frames the same way (capture and grab time;
+//! `tests/fast_vs_process.rs` compares the modes on a latency cell).
+
+use millinav_experiments::report::paper_smc_dob_rmse_mm;
+use millinav_experiments::{fast_run, Cell, FlowSetting, Metrics};
+use millinav_kit::scenario::Scenario;
+use millinav_tests::PaperCell;
+
+/// Sets `[plant.camera] latency_frames` and `[control.latency] compensate` of a base scenario.
+fn with_latency(base: &mut Scenario, latency_frames: u32, compensate: bool) {
+    let mut table = |section: &str, sub: &str, key: &str, value: toml::Value| {
+        let mut outer = base
+            .sections
+            .get(section)
+            .and_then(|v| v.as_table().cloned())
+            .unwrap_or_default();
+        let mut inner = outer
+            .get(sub)
+            .and_then(|v| v.as_table().cloned())
+            .unwrap_or_default();
+        inner.insert(key.into(), value);
+        outer.insert(sub.into(), inner.into());
+        base.sections.insert(section.into(), outer.into());
+    };
+    table(
+        "plant",
+        "camera",
+        "latency_frames",
+        i64::from(latency_frames).into(),
+    );
+    table("control", "latency", "compensate", compensate.into());
+}
+
+fn run(
+    viscosity_cp: f64,
+    flow: FlowSetting,
+    frame_period_ms: f64,
+    latency_frames: u32,
+    compensate: bool,
+) -> Metrics {
+    let cell = Cell {
+        viscosity_cp,
+        flow,
+        controller: "smc-dob-auto".into(),
+        seed: 1,
+    };
+    let paper = PaperCell::new(&cell, |base| {
+        base.run.frame_period_ms = frame_period_ms;
+        with_latency(base, latency_frames, compensate);
+    });
+    let m = paper.metrics(&fast_run(&paper.scenario).expect("fast run"));
+    println!(
+        "{:<28} {frame_period_ms} ms + {latency_frames} frames, compensate {compensate}: \
+         RMSE {:.2} P95 {:.2} Max {:.2} mm completed {}",
+        cell.name(),
+        m.rmse_mm,
+        m.p95_mm,
+        m.max_mm,
+        m.completed
+    );
+    m
+}
+
+fn assert_recovered(viscosity_cp: f64, flow: FlowSetting, frame_period_ms: f64, frames: u32) {
+    let compensated = run(viscosity_cp, flow, frame_period_ms, frames, true);
+    let stale = run(viscosity_cp, flow, frame_period_ms, frames, false);
+    let bound = paper_smc_dob_rmse_mm(viscosity_cp, flow).expect("the paper reports this cell");
+    assert!(
+        compensated.completed && compensated.rmse_mm <= bound,
+        "{viscosity_cp} cP {flow:?}: compensated RMSE {:.2} mm (paper {bound:.2}), completed {}",
+        compensated.rmse_mm,
+        compensated.completed
+    );
+    // Fed the stale pose, the same controller loses the robot or oscillates far off the path.
+    assert!(
+        !stale.completed || stale.rmse_mm > 5.0 * bound,
+        "{viscosity_cp} cP {flow:?}: the uncompensated loop did well (RMSE {:.2} mm)",
+        stale.rmse_mm
+    );
+}
+
+#[test]
+fn one_extra_frame_at_10_hz_is_compensated_in_still_fluid() {
+    for viscosity_cp in [20.0, 4.3] {
+        assert_recovered(viscosity_cp, FlowSetting::Static, 100.0, 1);
+    }
+}
+
+#[test]
+fn fifty_ms_at_100_hz_is_compensated_in_still_fluid_and_7_cm_s_flow() {
+    assert_recovered(20.0, FlowSetting::Static, 10.0, 5);
+    assert_recovered(20.0, FlowSetting::Q180, 10.0, 5);
+}
