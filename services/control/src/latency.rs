@@ -41,6 +41,11 @@ pub struct LatencyConfig {
     /// Smith predictor). Slower than the controllers' own observers, so that it only carries
     /// the steady part of what the model lacks.
     pub disturbance_time_constant_ms: f64,
+    /// Pulsation rate of the flow (Hz; the pump's stroke rate, which the lab sets): the
+    /// disturbance estimate then also carries a sinusoid at this rate (amplitude and phase
+    /// learned by recursive least squares), so that a pulsatile push is predicted across the
+    /// delay instead of being seen late. None: a steady estimate only.
+    pub pulsation_hz: Option<f64>,
 }
 
 impl Default for LatencyConfig {
@@ -50,6 +55,7 @@ impl Default for LatencyConfig {
             unstamped_delay_ms: 0.0,
             max_pose_age_ms: 500.0,
             disturbance_time_constant_ms: 1000.0,
+            pulsation_hz: None,
         }
     }
 }
@@ -66,6 +72,11 @@ impl LatencyConfig {
                 false,
             ),
         ];
+        if let Some(hz) = self.pulsation_hz {
+            if !(hz.is_finite() && hz > 0.0) {
+                return Some(("pulsation_hz", format!("must be finite and > 0, got {hz}")));
+            }
+        }
         checks.into_iter().find_map(|(name, value, strict)| {
             let fine = value.is_finite() && if strict { value > 0.0 } else { value >= 0.0 };
             (!fine).then(|| {
@@ -92,7 +103,51 @@ struct ForceSegment {
 struct ModelState {
     time_ns: u64,
     state: [Vector3<f64>; 2],
+    /// Response (p, v) of the model to a unit force along each disturbance basis function
+    /// (1, cos ωt, sin ωt), the same on both axes: the regressors of the pulsation fit.
+    sensitivity: [Vector2<f64>; BASIS],
 }
+
+/// Disturbance basis functions of the pulsation fit: steady, cos ωt, sin ωt.
+const BASIS: usize = 3;
+
+/// Recursive least-squares fit of the disturbance force d(t) = θ·(1, cos ωt, sin ωt) per axis.
+#[derive(Debug, Clone)]
+struct PulsationFit {
+    omega_rad_s: f64,
+    coefficients: [Vector3<f64>; 2],
+    covariance: Matrix3<f64>,
+}
+
+/// Initial uncertainty of each fitted force coefficient (1σ, N): far above any push the capsule
+/// meets (≈ 1e-4 N), so that the first poses already fit it (a tight prior would leave the
+/// gain tiny for seconds, until forgetting has inflated the covariance).
+const PULSATION_PRIOR_STD_N: f64 = 1e-2;
+
+impl PulsationFit {
+    fn new(hz: f64) -> Self {
+        Self {
+            omega_rad_s: std::f64::consts::TAU * hz,
+            coefficients: [Vector3::zeros(); 2],
+            covariance: Matrix3::identity() * PULSATION_PRIOR_STD_N.powi(2),
+        }
+    }
+
+    fn basis(&self, t_s: f64) -> Vector3<f64> {
+        let phase = self.omega_rad_s * t_s;
+        Vector3::new(1.0, phase.cos(), phase.sin())
+    }
+
+    /// The fitted force on each axis at `t_s`.
+    fn force(&self, t_s: f64) -> Vector2<f64> {
+        let b = self.basis(t_s);
+        Vector2::new(self.coefficients[0].dot(&b), self.coefficients[1].dot(&b))
+    }
+}
+
+/// Longest sub-step of the propagation while a pulsation is fitted (the fitted force is held
+/// over each), s.
+const PULSATION_SUBSTEP_S: f64 = 2e-3;
 
 /// What the predictor hands the controller for one pose.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -114,6 +169,7 @@ pub struct StatePredictor {
     segments: VecDeque<ForceSegment>,
     /// The model at the last pose's capture time, and that pose's position.
     last: Option<(ModelState, Vector2<f64>)>,
+    pulsation: Option<PulsationFit>,
 }
 
 /// Longest span of force history kept (ns): far more than any usable pose age.
@@ -122,10 +178,11 @@ const HISTORY_NS: u64 = 5_000_000_000;
 impl StatePredictor {
     pub fn new(config: LatencyConfig, model: NominalModel) -> Self {
         Self {
-            config,
             model,
             segments: VecDeque::new(),
             last: None,
+            pulsation: config.pulsation_hz.map(PulsationFit::new),
+            config,
         }
     }
 
@@ -137,6 +194,9 @@ impl StatePredictor {
     /// since it is what the coils did.
     pub fn reset(&mut self) {
         self.last = None;
+        if let Some(hz) = self.config.pulsation_hz {
+            self.pulsation = Some(PulsationFit::new(hz));
+        }
     }
 
     /// Records that `force_n` acts from `start_ns` on (the achieved force of a command, zero for
@@ -173,25 +233,37 @@ impl StatePredictor {
         let mut now = match self.last {
             Some((previous, previous_position)) if capture_ns > previous.time_ns => {
                 let mut at_capture = self.propagate(previous, capture_ns, flow_mps);
-                self.learn_disturbance(&previous, &mut at_capture, position_m - previous_position);
+                let measured_motion = position_m - previous_position;
+                if self.pulsation.is_some() {
+                    self.fit_pulsation(&previous, &mut at_capture, measured_motion);
+                } else {
+                    self.learn_disturbance(&previous, &mut at_capture, measured_motion);
+                }
                 at_capture
             }
             Some((previous, _)) if capture_ns == previous.time_ns => previous,
             _ => ModelState {
                 time_ns: capture_ns,
                 state: [Vector3::zeros(); 2],
+                sensitivity: [Vector2::zeros(); BASIS],
             },
         };
         // Positions are relative: re-anchor at each pose so they stay small.
         for axis in 0..2 {
             now.state[axis][0] = 0.0;
         }
+        for response in &mut now.sensitivity {
+            response[0] = 0.0;
+        }
         self.last = Some((now, position_m));
         let ahead = self.propagate(now, actuation_ns.max(capture_ns), flow_mps);
         Predicted {
             motion_ahead_m: Vector2::new(ahead.state[0][0], ahead.state[1][0]),
             velocity_mps: Vector2::new(ahead.state[0][1], ahead.state[1][1]),
-            disturbance_n: Vector2::new(ahead.state[0][2], ahead.state[1][2]),
+            disturbance_n: Vector2::new(ahead.state[0][2], ahead.state[1][2])
+                + self.pulsation.as_ref().map_or(Vector2::zeros(), |fit| {
+                    fit.force(actuation_ns as f64 * 1e-9)
+                }),
             horizon_s: actuation_ns.saturating_sub(capture_ns) as f64 * 1e-9,
         }
     }
@@ -220,6 +292,38 @@ impl StatePredictor {
         }
     }
 
+    /// Recursive least squares on the motion mismatch since `previous`: the model is linear, so
+    /// the mismatch is the sensitivities' motion times the coefficients' error. The model's
+    /// velocity takes the correction's response along.
+    fn fit_pulsation(
+        &mut self,
+        previous: &ModelState,
+        at_capture: &mut ModelState,
+        measured_motion: Vector2<f64>,
+    ) {
+        let Some(fit) = self.pulsation.as_mut() else {
+            return;
+        };
+        let dt = (at_capture.time_ns - previous.time_ns) as f64 * 1e-9;
+        let tau_s = (self.config.disturbance_time_constant_ms * 1e-3).max(1e-3);
+        let forgetting = (-dt / tau_s).exp();
+        let regressor =
+            Vector3::from_fn(|j, _| at_capture.sensitivity[j][0] - previous.sensitivity[j][0]);
+        let p_phi = fit.covariance * regressor;
+        let gain = p_phi / (forgetting + regressor.dot(&p_phi));
+        for axis in 0..2 {
+            let model_motion = at_capture.state[axis][0] - previous.state[axis][0];
+            let correction = gain * (measured_motion[axis] - model_motion);
+            fit.coefficients[axis] += correction;
+            let velocity_response: f64 = (0..BASIS)
+                .map(|j| correction[j] * at_capture.sensitivity[j][1])
+                .sum();
+            at_capture.state[axis][1] += velocity_response;
+        }
+        fit.covariance = (fit.covariance - gain * p_phi.transpose()) / forgetting;
+        fit.covariance = (fit.covariance + fit.covariance.transpose()) * 0.5;
+    }
+
     /// The model carried from its time to `to_ns` under the recorded forces.
     fn propagate(
         &self,
@@ -239,12 +343,34 @@ impl StatePredictor {
                 .segments
                 .get(index)
                 .map_or(to_ns, |s| s.start_ns.min(to_ns));
-            let h = (next - t) as f64 * 1e-9;
+            let span = (next - t) as f64 * 1e-9;
+            // With a fitted pulsation its force is held over short sub-steps.
+            let pieces = match &self.pulsation {
+                Some(_) => (span / PULSATION_SUBSTEP_S).ceil().max(1.0),
+                None => 1.0,
+            };
+            let h = span / pieces;
             let (phi, gamma) = self.transition(h);
-            for axis in 0..2 {
-                let drive = (force[axis] + self.model.linear_drag_n_s_per_m * flow[axis])
-                    / self.model.mass_kg;
-                model.state[axis] = phi * model.state[axis] + gamma * drive;
+            for piece in 0..pieces as usize {
+                let mid_s = t as f64 * 1e-9 + (piece as f64 + 0.5) * h;
+                let (fitted, basis) = match &self.pulsation {
+                    Some(fit) => (fit.force(mid_s), fit.basis(mid_s)),
+                    None => (Vector2::zeros(), Vector3::zeros()),
+                };
+                for axis in 0..2 {
+                    let drive = (force[axis]
+                        + fitted[axis]
+                        + self.model.linear_drag_n_s_per_m * flow[axis])
+                        / self.model.mass_kg;
+                    model.state[axis] = phi * model.state[axis] + gamma * drive;
+                }
+                if self.pulsation.is_some() {
+                    for (j, response) in model.sensitivity.iter_mut().enumerate() {
+                        let full = phi * Vector3::new(response[0], response[1], 0.0)
+                            + gamma * (basis[j] / self.model.mass_kg);
+                        *response = Vector2::new(full[0], full[1]);
+                    }
+                }
             }
             t = next;
         }
@@ -289,6 +415,15 @@ mod tests {
         d: Vector2<f64>,
         until_s: f64,
     ) -> Vec<(f64, Vector2<f64>)> {
+        simulate_with(forces, |_| d, until_s)
+    }
+
+    /// [`simulate`] with an extra force that varies in time.
+    fn simulate_with(
+        forces: &[(f64, Vector2<f64>)],
+        d: impl Fn(f64) -> Vector2<f64>,
+        until_s: f64,
+    ) -> Vec<(f64, Vector2<f64>)> {
         let (mut p, mut v) = (Vector2::zeros(), Vector2::zeros());
         let dt = 1e-5;
         let mut out = Vec::new();
@@ -301,7 +436,7 @@ mod tests {
                 .rev()
                 .find(|(start, _)| *start <= t + 1e-12)
                 .map_or(Vector2::zeros(), |(_, f)| *f);
-            let a = (f + d - v * MODEL.linear_drag_n_s_per_m) / MODEL.mass_kg;
+            let a = (f + d(t) - v * MODEL.linear_drag_n_s_per_m) / MODEL.mass_kg;
             v += a * dt;
             p += v * dt;
         }
@@ -367,6 +502,61 @@ mod tests {
         assert!(
             plain > 10.0 * learned,
             "plain Smith {plain} m vs {learned} m"
+        );
+    }
+
+    /// A pulsatile push at a known rate (the pump's) is learned in amplitude and phase and
+    /// predicted across the delay; the steady estimate alone misses most of it.
+    #[test]
+    fn predicts_a_pulsatile_push_at_the_pump_rate() {
+        let (period, delay, hz) = (0.1, 0.1, 3.0);
+        let omega = std::f64::consts::TAU * hz;
+        let push = |t: f64| {
+            Vector2::new(
+                2e-5 + 3e-5 * (omega * t + 0.7).sin(),
+                -1e-5 * (omega * t).cos(),
+            )
+        };
+        let forces: Vec<(f64, Vector2<f64>)> = (0..150)
+            .map(|k| (k as f64 * period, Vector2::new(-2e-5, 0.0)))
+            .collect();
+        let truth = simulate_with(&forces, push, 15.0);
+        let at = |t: f64| truth[(t / 1e-5).round() as usize].1;
+        let worst_error = |pulsation_hz: Option<f64>| {
+            let mut predictor = StatePredictor::new(
+                LatencyConfig {
+                    pulsation_hz,
+                    ..LatencyConfig::default()
+                },
+                MODEL,
+            );
+            let mut worst: f64 = 0.0;
+            for (k, (start, force)) in forces.iter().enumerate() {
+                predictor.commanded(ns(*start), *force, Vector2::zeros());
+                let now = *start;
+                if now < delay {
+                    continue;
+                }
+                let captured = now - delay;
+                let predicted = predictor.predict(
+                    at(captured),
+                    ns(captured),
+                    ns(now + period),
+                    Vector2::zeros(),
+                );
+                if k > 100 {
+                    let target = at(now + period);
+                    worst = worst.max((at(captured) + predicted.motion_ahead_m - target).norm());
+                }
+            }
+            worst
+        };
+        let fitted = worst_error(Some(hz));
+        let steady = worst_error(None);
+        assert!(fitted < 2e-5, "pulsation fit: worst error {fitted} m");
+        assert!(
+            steady > 10.0 * fitted,
+            "steady only: {steady} m vs {fitted} m"
         );
     }
 

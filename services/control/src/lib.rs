@@ -78,6 +78,10 @@ pub struct ControlConfig {
     pub use_all_coils: bool,
     /// Latency compensation (`[control.latency]`).
     pub latency: LatencyConfig,
+    /// Fastest change of any coil current while tracking (A/s; none: unlimited). The whole
+    /// current vector moves toward the allocation's by one factor, so the commanded force and
+    /// field turn gradually instead of jumping; hold and safe are never slowed.
+    pub max_current_slew_a_per_s: Option<f64>,
 }
 
 impl Default for ControlConfig {
@@ -98,6 +102,7 @@ impl Default for ControlConfig {
             field_row_weight: 1e4,
             use_all_coils: false,
             latency: LatencyConfig::default(),
+            max_current_slew_a_per_s: None,
         }
     }
 }
@@ -176,6 +181,8 @@ pub struct ControlLoop {
     last_mode: ControlMode,
     /// Predicts the state at actuation time from delayed poses and the issued forces.
     predictor: StatePredictor,
+    /// Actuation time and currents of the last tracking command (the slew limit's start).
+    last_tracked: Option<(u64, [f64; MAX_COILS])>,
     /// Poses and flow estimates that broke the contract (bad flag bytes); treated as invalid.
     pub violations: ContractViolations,
 }
@@ -223,6 +230,7 @@ impl ControlLoop {
             velocity: Vector2::zeros(),
             last_mode: ControlMode::Safe,
             predictor,
+            last_tracked: None,
             violations: ContractViolations::default(),
         }
     }
@@ -289,12 +297,15 @@ impl ControlLoop {
     }
 
     /// Currents for a desired force and the orientation field at the robot's pose, and the force
-    /// those currents make there (less than asked when the coils saturate).
+    /// those currents make there (less than asked when the coils saturate). With `slew` (the
+    /// previous currents and the largest step allowed now), the currents move toward the
+    /// allocation's by one factor so that no coil steps further.
     fn allocate(
         &self,
         position: &Vector2<f64>,
         heading: f64,
         force: &Vector2<f64>,
+        slew: Option<(&[f64; MAX_COILS], f64)>,
     ) -> ([f64; MAX_COILS], Vector2<f64>) {
         let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
         let p3 = Vector3::new(position.x, position.y, 0.0);
@@ -315,7 +326,20 @@ impl ControlLoop {
             allocate_limited(&a, &c, &self.limits).map(|a| a.currents_a)
         };
         let mut achieved = Vector2::zeros();
-        if let Ok(allocated) = allocated {
+        if let Ok(mut allocated) = allocated {
+            if let Some((previous, max_step_a)) = slew {
+                let previous = DVector::from_iterator(
+                    coil_ids.len(),
+                    coil_ids
+                        .iter()
+                        .map(|&id| previous.get(id).copied().unwrap_or(0.0)),
+                );
+                let step = &allocated - &previous;
+                let largest = step.amax();
+                if largest > max_step_a {
+                    allocated = previous + step * (max_step_a / largest);
+                }
+            }
             let wrench = &a * &allocated;
             achieved = Vector2::new(wrench[0], wrench[1]);
             for (k, &id) in coil_ids.iter().enumerate() {
@@ -341,6 +365,8 @@ impl ControlLoop {
         self.predictor
             .commanded(actuation_ns, Vector2::zeros(), Vector2::zeros());
         self.last_mode = ControlMode::Safe;
+        // Tracking resumes from zero current.
+        self.last_tracked = Some((actuation_ns, [0.0; MAX_COILS]));
         Decision {
             command: CoilCommand {
                 mode: ControlMode::Safe as u32,
@@ -382,13 +408,14 @@ impl ControlLoop {
                 let (_, p) = self.last_good.unwrap_or((0, Vector2::zeros()));
                 command.mode = ControlMode::Hold as u32;
                 let heading = self.config.field_heading_deg.to_radians();
-                let (currents, achieved) = self.allocate(&p, heading, &Vector2::zeros());
+                let (currents, achieved) = self.allocate(&p, heading, &Vector2::zeros(), None);
                 command.currents_a = currents;
                 held_force = achieved;
             } else {
                 command.mode = ControlMode::Safe as u32;
             }
             self.last_mode = ControlMode::from_u32(command.mode).unwrap_or(ControlMode::Safe);
+            self.last_tracked = Some((actuation_ns, command.currents_a));
             self.controller.reset();
             self.predictor.reset();
             self.predictor
@@ -459,8 +486,15 @@ impl ControlLoop {
         let field = self.desired_field();
         command.field_des_t = [field.x, field.y];
         // The field is allocated where the robot will be when the command acts.
-        let (currents, achieved) = self.allocate(&position_m, pose.heading_rad, &force);
+        let slew = match (self.config.max_current_slew_a_per_s, &self.last_tracked) {
+            (Some(rate), Some((t_prev, previous))) if actuation_ns > *t_prev => {
+                Some((previous, rate * (actuation_ns - t_prev) as f64 * 1e-9))
+            }
+            _ => None,
+        };
+        let (currents, achieved) = self.allocate(&position_m, pose.heading_rad, &force, slew);
         command.currents_a = currents;
+        self.last_tracked = Some((actuation_ns, currents));
         self.predictor.commanded(actuation_ns, achieved, flow_mps);
         self.last_mode = ControlMode::Track;
         Decision {
@@ -516,6 +550,9 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
     };
     at_least("hold_timeout_ms", config.hold_timeout_ms, 0.0, false)?;
     at_least("max_speed_mps", config.max_speed_mps, 0.0, true)?;
+    if let Some(rate) = config.max_current_slew_a_per_s {
+        at_least("max_current_slew_a_per_s", rate, 0.0, true)?;
+    }
     at_least("velocity_filter_ms", config.velocity_filter_ms, 0.0, false)?;
     at_least("field_magnitude_mt", config.field_magnitude_mt, 0.0, false)?;
     at_least("omega0_n_per_t", config.omega0_n_per_t, 0.0, true)?;
@@ -868,6 +905,25 @@ mod tests {
             .to_string();
         assert!(error.contains("[control] max_speed_mps"), "{error}");
 
+        let error = check_config(&scenario_with("slew", "max_current_slew_a_per_s = 0.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("[control] max_current_slew_a_per_s"),
+            "{error}"
+        );
+
+        let error = check_config(&scenario_with(
+            "latency",
+            "[control.latency]\nmax_pose_age_ms = -5.0",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            error.contains("[control.latency] max_pose_age_ms"),
+            "{error}"
+        );
+
         let error = check_config(&scenario_with(
             "limits",
             "[control.limits]\nmax_current_a = 0.0",
@@ -921,6 +977,36 @@ mod tests {
         assert_eq!(d.command.stamp, p.stamp);
         let safe = c.safe(&p, "test");
         assert_eq!(safe.command.active_coils as usize, c.coil_count());
+    }
+
+    #[test]
+    fn the_slew_limit_bounds_every_coil_step_while_tracking_but_never_slows_safe() {
+        let reference = Reference::new(&[[-0.018, 0.012], [-0.012, 0.008]], 1e-3, 0.0).unwrap();
+        let rig = Arc::new(Rig::load_paper().unwrap());
+        let config = ControlConfig {
+            max_current_slew_a_per_s: Some(10.0),
+            ..ControlConfig::default()
+        };
+        let mut c = ControlLoop::new(config, reference, 0.02, 0, rig);
+        // From zero current (after safe), 10 A/s over 10 ms frames: at most 0.1 A per step.
+        c.safe(&pose(0, 0.0, -0.018, 0.012), "start");
+        let mut previous = [0.0; MAX_COILS];
+        for k in 1..20 {
+            let d = c.step(&pose(k, k as f64 * 0.01, -0.0175, 0.0118), None);
+            assert_eq!(mode(&d), ControlMode::Track);
+            let largest = d
+                .command
+                .currents_a
+                .iter()
+                .zip(&previous)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(largest <= 0.1 + 1e-9, "step {k}: {largest} A");
+            previous = d.command.currents_a;
+        }
+        assert!(previous.iter().any(|i| i.abs() > 0.5), "{previous:?}");
+        let d = c.safe(&pose(20, 0.2, -0.0175, 0.0118), "flow estimates lost");
+        assert!(d.command.currents_a.iter().all(|i| *i == 0.0));
     }
 
     #[test]

@@ -275,6 +275,28 @@ pub struct TruthRow {
     /// Σ I² over the coils (A²); traces written before this column existed lack it.
     #[serde(default, serialize_with = "fixed6_some")]
     pub sum_sq_current_a2: Option<f64>,
+    /// Current in each of the rig's coils (A, space separated, the rig's order); traces written
+    /// before this column existed lack it.
+    #[serde(default)]
+    pub coil_currents_a: Option<String>,
+}
+
+impl TruthRow {
+    /// The per-coil currents as written by [`Self::format_currents`], if the row has them.
+    pub fn currents(&self) -> Option<Result<Vec<f64>, std::num::ParseFloatError>> {
+        self.coil_currents_a
+            .as_deref()
+            .map(|text| text.split_whitespace().map(str::parse).collect())
+    }
+
+    /// The `coil_currents_a` column for `currents`.
+    pub fn format_currents(currents: &[f64]) -> String {
+        currents
+            .iter()
+            .map(|c| format!("{c:.6}"))
+            .collect::<Vec<_>>()
+            .join(" ")
+    }
 }
 
 impl RunLogRow for TruthRow {
@@ -293,8 +315,9 @@ impl RunLogRow for TruthRow {
         "max_abs_current_a",
         "lockstep_misses",
         "sum_sq_current_a2",
+        "coil_currents_a",
     ];
-    const OPTIONAL_COLUMNS: &'static [&'static str] = &["sum_sq_current_a2"];
+    const OPTIONAL_COLUMNS: &'static [&'static str] = &["sum_sq_current_a2", "coil_currents_a"];
 }
 
 /// A wall contact starting or ending (`contacts.csv`), with the running onset count.
@@ -407,6 +430,7 @@ mod tests {
             max_abs_current_a: 4.5,
             lockstep_misses: 2,
             sum_sq_current_a2: Some(20.25),
+            coil_currents_a: Some(TruthRow::format_currents(&[4.5, -0.25, 0.0])),
         }
     }
 
@@ -497,7 +521,7 @@ mod tests {
         let text = std::fs::read_to_string(&path).expect("read");
         assert_eq!(
             text.lines().nth(1),
-            Some("3,0.250000,0.001500000,-0.002250000,0.000100000,-0.000300000,0.500000,0.100000000,-0.050000000,1,4.500000,2,20.250000")
+            Some("3,0.250000,0.001500000,-0.002250000,0.000100000,-0.000300000,0.500000,0.100000000,-0.050000000,1,4.500000,2,20.250000,4.500000 -0.250000 0.000000")
         );
         let teensy_path = temp_dir("format-teensy").join("teensy_events.csv");
         let mut writer = RunLogWriter::<TeensyEventRow>::open_append(&teensy_path).expect("open");
@@ -557,7 +581,7 @@ mod tests {
     #[test]
     fn an_optional_column_may_be_missing_in_older_files() {
         let mut header = TruthRow::COLUMNS.to_vec();
-        header.pop();
+        header.truncate(header.len() - 2);
         let text = format!(
             "{}\n0,0.0,0.001,0.002,0,0,0,0,0,0,3.0,0\n",
             header.join(",")
@@ -565,6 +589,7 @@ mod tests {
         let rows: Vec<TruthRow> = parse_rows(&text, Path::new("truth.csv")).expect("rows");
         assert_eq!(rows.len(), 1);
         assert_eq!(rows[0].sum_sq_current_a2, None);
+        assert_eq!(rows[0].currents(), None);
         assert!(!rows[0].wall_contact);
     }
 

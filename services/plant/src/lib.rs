@@ -572,6 +572,9 @@ impl TruthCsv {
             max_abs_current_a: max_current,
             lockstep_misses: t.lockstep_misses,
             sum_sq_current_a2: Some(sum_sq_current),
+            coil_currents_a: Some(TruthRow::format_currents(
+                &t.applied_currents_a[..(t.active_coils as usize).min(MAX_RIG_COILS)],
+            )),
         })?;
         Ok(())
     }

@@ -214,6 +214,8 @@ pub struct TraceRow {
     pub max_abs_current_a: f64,
     /// Σ I² over the coils (A²), for energy.
     pub sum_sq_current_a2: f64,
+    /// Current in each coil (A; rest 0), when the trace has them.
+    pub coil_currents_a: Option<[f64; MAX_COILS]>,
 }
 
 /// Localization noise of the fast mode (per axis), from vision-eval's centroid error.
@@ -249,6 +251,7 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
                 .iter()
                 .fold(0.0, |m, c| m.max(c.abs())),
             sum_sq_current_a2: state.coil_currents_a.iter().map(|c| c * c).sum(),
+            coil_currents_a: Some(state.coil_currents_a),
         });
         if seq == frames {
             break;
@@ -346,11 +349,26 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TraceRow>> {
     let rows: Vec<TruthRow> = runlog::read_rows(path)?;
     let mut trace = Vec::with_capacity(rows.len());
     let mut last_seq = None;
-    for row in rows {
+    for (line, row) in rows.into_iter().enumerate() {
         if last_seq == Some(row.frame_seq) {
             continue;
         }
         last_seq = Some(row.frame_seq);
+        let coil_currents_a = match row.currents() {
+            None => None,
+            Some(Ok(values)) if values.len() <= MAX_COILS => {
+                let mut currents = [0.0; MAX_COILS];
+                currents[..values.len()].copy_from_slice(&values);
+                Some(currents)
+            }
+            Some(Ok(values)) => bail!(
+                "{}: row {}: coil_currents_a has {} values, at most {MAX_COILS} allowed",
+                path.display(),
+                line + 1,
+                values.len()
+            ),
+            Some(Err(e)) => bail!("{}: row {}: coil_currents_a: {e}", path.display(), line + 1),
+        };
         trace.push(TraceRow {
             time_s: row.sim_time_s,
             position_m: Vector2::new(row.x_m, row.y_m),
@@ -361,6 +379,7 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TraceRow>> {
             sum_sq_current_a2: row
                 .sum_sq_current_a2
                 .unwrap_or(row.max_abs_current_a * row.max_abs_current_a * MAX_COILS as f64),
+            coil_currents_a,
         });
     }
     Ok(trace)
@@ -375,7 +394,13 @@ pub struct Metrics {
     pub completed: bool,
     pub wall_contact_frames: usize,
     pub peak_current_a: f64,
+    /// Joule heat in the coils, Σ I² R dt (J).
     pub energy_j: f64,
+    /// 95th percentile over frames of the largest per-coil current change in one frame (A);
+    /// NaN when the trace lacks per-coil currents.
+    pub current_step_p95_a: f64,
+    /// Total variation of the coil currents, Σ over frames and coils of |ΔI|, per second (A/s).
+    pub current_tv_a_per_s: f64,
 }
 
 /// "Failed to complete": the error stays above `FAIL_ERROR_M` for longer than `FAIL_TIME_S`
@@ -411,6 +436,7 @@ pub fn metrics(trace: &[TraceRow], reference: &Reference, coil_resistance_ohm: f
                 row.sum_sq_current_a2 * coil_resistance_ohm * (row.time_s - trace[i - 1].time_s);
         }
     }
+    let current_steps = CurrentSteps::of(trace);
     let final_error = errors.last().copied().unwrap_or(f64::INFINITY);
     let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len().max(1) as f64).sqrt();
     let mut sorted = errors.clone();
@@ -432,6 +458,45 @@ pub fn metrics(trace: &[TraceRow], reference: &Reference, coil_resistance_ohm: f
         wall_contact_frames: trace.iter().filter(|r| r.wall_contact).count(),
         peak_current_a: trace.iter().fold(0.0, |m, r| m.max(r.max_abs_current_a)),
         energy_j: energy,
+        current_step_p95_a: current_steps.p95_a,
+        current_tv_a_per_s: current_steps.tv_a_per_s,
+    }
+}
+
+/// How much the coil currents move from frame to frame.
+struct CurrentSteps {
+    p95_a: f64,
+    tv_a_per_s: f64,
+}
+
+impl CurrentSteps {
+    fn of(trace: &[TraceRow]) -> Self {
+        let mut largest_steps = Vec::with_capacity(trace.len());
+        let mut total = 0.0;
+        for pair in trace.windows(2) {
+            let (Some(before), Some(after)) = (pair[0].coil_currents_a, pair[1].coil_currents_a)
+            else {
+                return Self {
+                    p95_a: f64::NAN,
+                    tv_a_per_s: f64::NAN,
+                };
+            };
+            let steps = before.iter().zip(&after).map(|(a, b)| (b - a).abs());
+            total += steps.clone().sum::<f64>();
+            largest_steps.push(steps.fold(0.0, f64::max));
+        }
+        largest_steps.sort_by(|a, b| a.total_cmp(b));
+        let duration = match (trace.first(), trace.last()) {
+            (Some(first), Some(last)) if last.time_s > first.time_s => last.time_s - first.time_s,
+            _ => f64::NAN,
+        };
+        Self {
+            p95_a: largest_steps
+                .get(((largest_steps.len() as f64 - 1.0) * 0.95).round() as usize)
+                .copied()
+                .unwrap_or(f64::NAN),
+            tv_a_per_s: total / duration,
+        }
     }
 }
 
@@ -588,12 +653,24 @@ mod tests {
                     wall_contact: false,
                     max_abs_current_a: 1.0,
                     sum_sq_current_a2: 1.0,
+                    // One coil alternating between +1 and −1 A: a 2 A step every 0.1 s.
+                    coil_currents_a: Some({
+                        let mut currents = [0.0; MAX_COILS];
+                        currents[0] = if i % 2 == 0 { 1.0 } else { -1.0 };
+                        currents
+                    }),
                 }
             })
             .collect();
         let m = metrics(&perfect, &reference, 10.0);
         assert!(m.rmse_mm < 1e-9 && m.completed);
         assert!((m.energy_j - 100.0).abs() < 1e-6, "{}", m.energy_j);
+        assert!((m.current_step_p95_a - 2.0).abs() < 1e-12);
+        assert!(
+            (m.current_tv_a_per_s - 20.0).abs() < 1e-9,
+            "{}",
+            m.current_tv_a_per_s
+        );
         let lost: Vec<TraceRow> = perfect
             .iter()
             .map(|r| TraceRow {
@@ -621,6 +698,7 @@ mod tests {
                         wall_contact: false,
                         max_abs_current_a: 0.0,
                         sum_sq_current_a2: 0.0,
+                        coil_currents_a: None,
                     }
                 })
                 .collect()

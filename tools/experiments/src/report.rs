@@ -161,13 +161,13 @@ fn mean_sd(values: &[f64]) -> (f64, f64) {
 
 pub fn write_csv(outcomes: &[Outcome], path: &Path) -> std::io::Result<()> {
     let mut out = String::from(
-        "viscosity_cp,flow,controller,seed,rmse_mm,p95_mm,max_mm,completed,wall_contact_frames,peak_current_a,energy_j,wall_s\n",
+        "viscosity_cp,flow,controller,seed,rmse_mm,p95_mm,max_mm,completed,wall_contact_frames,peak_current_a,energy_j,current_step_p95_a,current_tv_a_per_s,wall_s\n",
     );
     for o in outcomes {
         let m = &o.metrics;
         let _ = writeln!(
             out,
-            "{},{},{},{},{:.4},{:.4},{:.4},{},{},{:.3},{:.3},{:.2}",
+            "{},{},{},{},{:.4},{:.4},{:.4},{},{},{:.3},{:.3},{:.4},{:.2},{:.2}",
             o.cell.viscosity_cp,
             o.cell.flow.label(),
             o.cell.controller,
@@ -179,6 +179,8 @@ pub fn write_csv(outcomes: &[Outcome], path: &Path) -> std::io::Result<()> {
             m.wall_contact_frames,
             m.peak_current_a,
             m.energy_j,
+            m.current_step_p95_a,
+            m.current_tv_a_per_s,
             o.wall_s
         );
     }
@@ -204,8 +206,9 @@ fn groups(outcomes: &[Outcome]) -> BTreeMap<(i64, FlowSetting, String), Vec<&Out
 pub fn markdown_table(outcomes: &[Outcome], mode: &str, with_paper: bool) -> String {
     let mut out = format!(
         "Mode: {mode}. Mean ± sd over trials; \"failed\" = error above {} mm for more than {} s, or never within it of the end after the reference got there.\n\n\
-         | condition | controller | trials | completed | RMSE mm | P95 mm | Max mm | wall contacts | peak A | energy J | paper RMSE / P95 / Max |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|\n",
+         \"ΔI p95\" = 95th percentile over frames of the largest per-coil current change in one frame; \"TV\" = total variation of the coil currents per second; \"heat\" = Joule heat Σ I² R dt in the coils.\n\n\
+         | condition | controller | trials | completed | RMSE mm | P95 mm | Max mm | wall contacts | peak A | ΔI p95 A | TV A/s | heat J | paper RMSE / P95 / Max |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
         crate::FAIL_ERROR_M * 1e3,
         crate::FAIL_TIME_S
     );
@@ -218,7 +221,7 @@ pub fn markdown_table(outcomes: &[Outcome], mode: &str, with_paper: bool) -> Str
         };
         let _ = writeln!(
             out,
-            "| {} cP, {} | {controller} | {} | {done}/{} | {} | {} | {} | {:.0} | {:.2} | {:.1} | {} |",
+            "| {} cP, {} | {controller} | {} | {done}/{} | {} | {} | {} | {:.0} | {:.2} | {:.3} | {:.1} | {:.1} | {} |",
             viscosity,
             flow.label(),
             list.len(),
@@ -228,6 +231,8 @@ pub fn markdown_table(outcomes: &[Outcome], mode: &str, with_paper: bool) -> Str
             stat(|m| m.max_mm),
             mean_sd(&list.iter().map(|o| o.metrics.wall_contact_frames as f64).collect::<Vec<_>>()).0,
             mean_sd(&list.iter().map(|o| o.metrics.peak_current_a).collect::<Vec<_>>()).0,
+            mean_sd(&list.iter().map(|o| o.metrics.current_step_p95_a).collect::<Vec<_>>()).0,
+            mean_sd(&list.iter().map(|o| o.metrics.current_tv_a_per_s).collect::<Vec<_>>()).0,
             mean_sd(&list.iter().map(|o| o.metrics.energy_j).collect::<Vec<_>>()).0,
             if with_paper {
                 paper(viscosity, flow, &controller)
