@@ -11,7 +11,7 @@
 //!
 //! The latency cell (2 frames of camera latency, PID, still fluid; issue 21 point 6): both modes
 //! stamp the frame with its capture and grab time and control predicts across the delay
-//! (measured: RMSE 0.030 mm fast, 0.022 mm process; the uncompensated PID oscillated at
+//! (measured: RMSE 0.032 mm fast, 0.023 mm process; the uncompensated PID oscillated at
 //! ≈ 1.06 mm in both). Should the loop oscillate again, its tails depend on the localization
 //! noise, so P95 and Max are compared within `OSCILLATION_TAIL_TOL_MM`.
 

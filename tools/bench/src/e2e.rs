@@ -1,8 +1,8 @@
 //! End to end through the real process set in real-time mode: `millinav run` (supervisor +
 //! plant, vision, flow, control, coilbus) on the short scenario with `mode = "realtime"`.
 //!
-//! Timestamps, all CLOCK_MONOTONIC: frame capture = run epoch + `capture_time_ns` carried by
-//! every Pose/CoilCommand (the epoch is read from a child's `MILLINAV_CLOCK_EPOCH_NS`); Pose and
+//! Timestamps, all CLOCK_MONOTONIC: frame capture = run epoch + `grab_time_ns` carried by
+//! every Pose/CoilCommand (the frame entering the set; the twin's camera adds no latency here) (the epoch is read from a child's `MILLINAV_CLOCK_EPOCH_NS`); Pose and
 //! CoilCommand arrival = this process subscribed next to control and coilbus (same topics,
 //! same QoS); serial write = the emulated Teensy's receipt of the frame on its pty
 //! (`teensy_events.csv`).
@@ -162,14 +162,14 @@ pub fn run(bin_dir: &Path, dir: &Path, duration_s: f64) -> Result<E2eResult, Ben
         root.clone(),
         services::POSE,
         stop.clone(),
-        |p| (p.stamp.seq, p.stamp.capture_time_ns),
+        |p| (p.stamp.seq, p.stamp.grab_time_ns),
     );
     let commands = subscribe::<CoilCommand>(
         prefix.clone(),
         root.clone(),
         services::COMMAND,
         stop.clone(),
-        |c| (c.stamp.seq, c.stamp.capture_time_ns),
+        |c| (c.stamp.seq, c.stamp.grab_time_ns),
     );
     let log = std::fs::File::create(dir.join("e2e-supervisor.log"))?;
     let mut child = Command::new(&supervisor)
