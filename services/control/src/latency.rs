@@ -443,6 +443,40 @@ mod tests {
         out
     }
 
+    /// Feeds `predictor` the frames of `forces` (one command per frame, poses `delay` old,
+    /// predictions one `period` ahead) against `truth`, and returns the worst prediction error
+    /// and the worst error of the stale pose from frame `from_frame` on, m.
+    fn replay(
+        mut predictor: StatePredictor,
+        forces: &[(f64, Vector2<f64>)],
+        truth: &[(f64, Vector2<f64>)],
+        (period, delay): (f64, f64),
+        from_frame: usize,
+    ) -> (f64, f64) {
+        let at = |t: f64| truth[(t / 1e-5).round() as usize].1;
+        let (mut worst, mut stale): (f64, f64) = (0.0, 0.0);
+        for (k, (start, force)) in forces.iter().enumerate() {
+            predictor.commanded(ns(*start), *force, Vector2::zeros());
+            let now = *start;
+            if now < delay {
+                continue;
+            }
+            let captured = now - delay;
+            let predicted = predictor.predict(
+                at(captured),
+                ns(captured),
+                ns(now + period),
+                Vector2::zeros(),
+            );
+            if k > from_frame {
+                let target = at(now + period);
+                worst = worst.max((at(captured) + predicted.motion_ahead_m - target).norm());
+                stale = stale.max((at(captured) - target).norm());
+            }
+        }
+        (worst, stale)
+    }
+
     /// With the delay known and the model right, the prediction lands on the truth: the
     /// predictor learns the unknown steady force from delayed positions and the commands explain
     /// the rest. Without the disturbance estimate the steady push is missed.
@@ -462,37 +496,18 @@ mod tests {
             })
             .collect();
         let truth = simulate(&forces, d, 8.0);
-        let at = |t: f64| truth[(t / 1e-5).round() as usize].1;
         let worst_error = |disturbance_time_constant_ms: f64| {
-            let mut predictor = StatePredictor::new(
-                LatencyConfig {
-                    disturbance_time_constant_ms,
-                    ..LatencyConfig::default()
-                },
-                MODEL,
-            );
-            let mut worst: f64 = 0.0;
-            let mut stale: f64 = 0.0;
-            for (k, (start, force)) in forces.iter().enumerate() {
-                predictor.commanded(ns(*start), *force, Vector2::zeros());
-                let now = *start;
-                if now < delay {
-                    continue;
-                }
-                let captured = now - delay;
-                let predicted = predictor.predict(
-                    at(captured),
-                    ns(captured),
-                    ns(now + period),
-                    Vector2::zeros(),
-                );
-                if k > 60 {
-                    let target = at(now + period);
-                    worst = worst.max((at(captured) + predicted.motion_ahead_m - target).norm());
-                    stale = stale.max((at(captured) - target).norm());
-                }
-            }
-            (worst, stale)
+            let config = LatencyConfig {
+                disturbance_time_constant_ms,
+                ..LatencyConfig::default()
+            };
+            replay(
+                StatePredictor::new(config, MODEL),
+                &forces,
+                &truth,
+                (period, delay),
+                60,
+            )
         };
         let (learned, stale) = worst_error(300.0);
         // The robot moves millimetres over the horizon; the stale pose is that far off.
@@ -521,35 +536,13 @@ mod tests {
             .map(|k| (k as f64 * period, Vector2::new(-2e-5, 0.0)))
             .collect();
         let truth = simulate_with(&forces, push, 15.0);
-        let at = |t: f64| truth[(t / 1e-5).round() as usize].1;
         let worst_error = |pulsation_hz: Option<f64>| {
-            let mut predictor = StatePredictor::new(
-                LatencyConfig {
-                    pulsation_hz,
-                    ..LatencyConfig::default()
-                },
-                MODEL,
-            );
-            let mut worst: f64 = 0.0;
-            for (k, (start, force)) in forces.iter().enumerate() {
-                predictor.commanded(ns(*start), *force, Vector2::zeros());
-                let now = *start;
-                if now < delay {
-                    continue;
-                }
-                let captured = now - delay;
-                let predicted = predictor.predict(
-                    at(captured),
-                    ns(captured),
-                    ns(now + period),
-                    Vector2::zeros(),
-                );
-                if k > 100 {
-                    let target = at(now + period);
-                    worst = worst.max((at(captured) + predicted.motion_ahead_m - target).norm());
-                }
-            }
-            worst
+            let config = LatencyConfig {
+                pulsation_hz,
+                ..LatencyConfig::default()
+            };
+            let predictor = StatePredictor::new(config, MODEL);
+            replay(predictor, &forces, &truth, (period, delay), 100).0
         };
         let fitted = worst_error(Some(hz));
         let steady = worst_error(None);
