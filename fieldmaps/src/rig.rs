@@ -31,6 +31,69 @@ fn require_positive(field: &'static str, v: f64) -> Result<(), RigError> {
     }
 }
 
+/// How the capsule looks to the classical localizer, in OpenCV's HSV scale (hue 0–180,
+/// saturation and value 0–255): the dyed body is every pixel inside `body_hsv_min` ..=
+/// `body_hsv_max`, the magnet every pixel with value ≤ `magnet_value_max` whatever its hue.
+/// A hue range that wraps past 180 (a red dye) is not supported.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CapsuleAppearance {
+    pub body_hsv_min: [f64; 3],
+    pub body_hsv_max: [f64; 3],
+    pub magnet_value_max: f64,
+}
+
+impl Default for CapsuleAppearance {
+    /// The twin's rendering: blue dye and a lighter cap (hue ≈ 105..125), a near-black magnet.
+    fn default() -> Self {
+        Self {
+            body_hsv_min: [95.0, 60.0, 60.0],
+            body_hsv_max: [130.0, 255.0, 255.0],
+            magnet_value_max: 70.0,
+        }
+    }
+}
+
+impl CapsuleAppearance {
+    /// Checks the ranges; the error names the key and why.
+    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+        let top = [180.0, 255.0, 255.0];
+        for (name, values) in [
+            ("body_hsv_min", self.body_hsv_min),
+            ("body_hsv_max", self.body_hsv_max),
+        ] {
+            for (channel, (v, t)) in values.iter().zip(top).enumerate() {
+                if !(v.is_finite() && (0.0..=t).contains(v)) {
+                    return Err((
+                        name,
+                        format!("channel {channel} must be within 0..={t}, got {v}"),
+                    ));
+                }
+            }
+        }
+        for channel in 0..3 {
+            if self.body_hsv_min[channel] > self.body_hsv_max[channel] {
+                return Err((
+                    "body_hsv_max",
+                    format!(
+                        "channel {channel} ({}) is below body_hsv_min's ({}); a hue range that wraps \
+                         past 180 is not supported",
+                        self.body_hsv_max[channel], self.body_hsv_min[channel]
+                    ),
+                ));
+            }
+        }
+        let v = self.magnet_value_max;
+        if !(v.is_finite() && (0.0..=255.0).contains(&v)) {
+            return Err((
+                "magnet_value_max",
+                format!("must be within 0..=255, got {v}"),
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// The capsule robot.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

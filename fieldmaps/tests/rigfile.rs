@@ -613,6 +613,24 @@ fn bad_robot_camera_and_header() {
     expect_err("robot-mass", &t, "robot.mass_kg", "> 0");
     let t = replace_once(&base, "width_px = 1020", "width_px = 0");
     expect_err("camera-width", &t, "camera.width_px", "> 0");
+    let t = replace_once(
+        &base,
+        "body_hsv_max = [130, 255, 255]",
+        "body_hsv_max = [30, 255, 255]",
+    );
+    expect_err(
+        "appearance-wrap",
+        &t,
+        "robot.appearance.body_hsv_max",
+        "wraps past 180",
+    );
+    let t = replace_once(&base, "magnet_value_max = 70", "magnet_value_max = 300");
+    expect_err(
+        "appearance-range",
+        &t,
+        "robot.appearance.magnet_value_max",
+        "0..=255",
+    );
     let t = replace_once(&base, "pixel_format = \"rgb8\"", "pixel_format = \"bayer\"");
     expect_err(
         "camera-format",

@@ -154,6 +154,10 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
     let camera = build_camera(ctx, &file.camera)?;
     let phantom = build_phantom(ctx, &file.phantom, &camera)?;
     let robot = build_robot(ctx, &file.robot)?;
+    let appearance = file.robot.appearance.unwrap_or_default();
+    appearance
+        .validate()
+        .map_err(|(key, why)| ctx.err(format!("robot.appearance.{key}"), why))?;
     Ok(Rig {
         path: ctx.path.to_owned(),
         name: file.name,
@@ -168,6 +172,7 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
         camera,
         phantom,
         robot,
+        appearance,
     })
 }
 

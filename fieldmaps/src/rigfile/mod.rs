@@ -237,6 +237,8 @@ pub struct Rig {
     pub camera: RigCamera,
     pub phantom: RigPhantom,
     pub robot: RobotParams,
+    /// How the capsule looks to the classical localizer (`[robot.appearance]`).
+    pub appearance: crate::rig::CapsuleAppearance,
 }
 
 impl Rig {

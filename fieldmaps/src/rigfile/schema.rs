@@ -154,4 +154,7 @@ pub(crate) struct RobotSection {
     pub added_mass_kg: f64,
     pub length_m: f64,
     pub diameter_m: f64,
+    /// `[robot.appearance]`: the classical localizer's colour ranges (default: the twin's).
+    #[serde(default)]
+    pub appearance: Option<crate::rig::CapsuleAppearance>,
 }

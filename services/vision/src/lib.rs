@@ -115,7 +115,7 @@ impl Pipeline {
         };
         Ok(Self {
             tracker: RoiTracker::default(),
-            classical: ClassicalLocalizer::new(size),
+            classical: ClassicalLocalizer::new(size, rig.appearance),
             unet,
             roi_mm: config.roi_mm,
         })

@@ -20,6 +20,8 @@ pub struct Scene {
     pub centroid_px: (f64, f64),
     /// The rig's capsule.
     pub capsule: CapsuleSize,
+    /// The rig's colour ranges for the classical localizer.
+    pub appearance: fieldmaps::rig::CapsuleAppearance,
 }
 
 impl Scene {
@@ -52,6 +54,7 @@ impl Scene {
             mm_per_px: geometry.mm_per_px,
             centroid_px: geometry.world_to_px(&position),
             capsule: CapsuleSize::of(&rig.robot),
+            appearance: rig.appearance,
         })
     }
 
@@ -70,7 +73,7 @@ impl Scene {
 }
 
 pub fn classical(scene: &Scene) -> ClassicalLocalizer {
-    ClassicalLocalizer::new(scene.capsule)
+    ClassicalLocalizer::new(scene.capsule, scene.appearance)
 }
 
 /// The committed ROI UNet with the venv's ONNX Runtime (single intra-op thread, as in vision).

@@ -51,7 +51,7 @@ fn main() -> anyhow::Result<()> {
     }
     let reports = [
         evaluate_unet(&mut unet, &split, expected),
-        evaluate_classical(&ClassicalLocalizer::new(size), &split),
+        evaluate_classical(&ClassicalLocalizer::new(size, rig.appearance), &split),
     ];
     println!("{}", table(&reports));
     Ok(())
