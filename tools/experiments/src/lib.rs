@@ -7,6 +7,7 @@
 //! - `process`: the real process set in lockstep through `millinav run`, metrics from truth.csv.
 
 pub mod report;
+pub mod robustness;
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};

@@ -8,6 +8,7 @@ use clap::{Parser, ValueEnum};
 use fieldmaps::rigfile::Rig;
 use indicatif::{ProgressBar, ProgressStyle};
 use millinav_experiments::report::{self, Outcome};
+use millinav_experiments::robustness;
 use millinav_experiments::{
     cell_scenario, fast_run, metrics, process_run, recorded_run, reference_of, rig_matrix,
     write_rrd, Cell, Metrics, TraceRow,
@@ -67,6 +68,12 @@ struct Args {
     /// figures). A cell whose recorded scenario differs is an error; wall_s then is read time.
     #[arg(long)]
     reuse_runs: bool,
+    /// Run the robustness matrix instead of the paper's: 20 cP at 7 cm/s with one disturbance
+    /// varied at a time (pulsation rate and amplitude, flow noise, recirculation, per-coil gain
+    /// error, camera latency, viscosity) at 10 and 100 Hz, for the scheduled SMC-DOB and the
+    /// baselines (or --controllers); writes robustness.csv, robustness.md, robustness.png.
+    #[arg(long)]
+    robustness: bool,
     /// Worker threads (fast mode).
     #[arg(long, default_value_t = 2)]
     threads: usize,
@@ -81,6 +88,9 @@ type FirstTrials = Vec<(Cell, Vec<TraceRow>)>;
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let base = load_base(&args)?;
+    if args.robustness {
+        return run_robustness(&args, &base);
+    }
     let rig = base.rig()?;
     let cells = selected_cells(&args, &rig)?;
     std::fs::create_dir_all(&args.out)?;
@@ -236,6 +246,43 @@ fn selected_cells(args: &Args, rig: &Rig) -> anyhow::Result<Vec<Cell>> {
     Ok(cells)
 }
 
+/// Runs `work` on every item on `threads` workers with a progress bar (`label` names an item
+/// and its result); returns the items with their results, in no particular order.
+fn run_parallel<T: Send, R: Send>(
+    items: Vec<T>,
+    threads: usize,
+    label: impl Fn(&T, &R) -> String + Sync,
+    work: impl Fn(&T) -> anyhow::Result<R> + Sync,
+) -> anyhow::Result<Vec<(T, R)>> {
+    let bar = ProgressBar::new(items.len() as u64).with_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let done: Mutex<Vec<(T, R)>> = Mutex::new(Vec::new());
+    let queue = Mutex::new(items);
+    let poisoned = || anyhow::anyhow!("poisoned");
+    let worker = || -> anyhow::Result<()> {
+        loop {
+            let Some(item) = queue.lock().map_err(|_| poisoned())?.pop() else {
+                return Ok(());
+            };
+            let result = work(&item)?;
+            bar.set_message(label(&item, &result));
+            bar.inc(1);
+            done.lock().map_err(|_| poisoned())?.push((item, result));
+        }
+    };
+    std::thread::scope(|s| -> anyhow::Result<()> {
+        let handles: Vec<_> = (0..threads).map(|_| s.spawn(worker)).collect();
+        for h in handles {
+            h.join().map_err(|_| anyhow::anyhow!("worker panicked"))??;
+        }
+        Ok(())
+    })?;
+    bar.finish();
+    done.into_inner().map_err(|_| poisoned())
+}
+
 /// Runs every cell on `threads` workers with a progress bar; returns the outcomes (in no
 /// particular order) and the first trials' traces.
 fn run_cells(
@@ -248,47 +295,87 @@ fn run_cells(
         .parent()
         .context("exe dir")?
         .to_owned();
-    let bar = ProgressBar::new(cells.len() as u64).with_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    let runs = run_parallel(
+        cells,
+        threads,
+        |cell, (_, m, _): &(Vec<TraceRow>, Metrics, f64)| {
+            format!("{} RMSE {:.2} mm", cell.name(), m.rmse_mm)
+        },
+        |cell| run_cell(args, base, &bin_dir, cell),
+    )?;
+    let mut outcomes = Vec::with_capacity(runs.len());
+    let mut traces = Vec::new();
+    for (cell, (trace, metrics, wall_s)) in runs {
+        if cell.seed == 1 {
+            traces.push((cell.clone(), trace));
+        }
+        outcomes.push(Outcome {
+            cell,
+            metrics,
+            wall_s,
+        });
+    }
+    Ok((outcomes, traces))
+}
+
+/// The robustness matrix (`--robustness`): runs every case in fast mode and writes
+/// robustness.csv, robustness.md and robustness.png into `--out`.
+fn run_robustness(args: &Args, base: &Scenario) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.mode == Mode::Fast,
+        "--robustness runs in fast mode only (thousands of runs; see README)"
     );
-    let outcomes: Mutex<Vec<Outcome>> = Mutex::new(Vec::new());
-    let traces: Mutex<FirstTrials> = Mutex::new(Vec::new());
-    let queue = Mutex::new(cells);
-    let poisoned = || anyhow::anyhow!("poisoned");
-    let work = || -> anyhow::Result<()> {
-        loop {
-            let Some(cell) = queue.lock().map_err(|_| poisoned())?.pop() else {
-                return Ok(());
-            };
-            let (trace, m, wall_s) = run_cell(args, base, &bin_dir, &cell)?;
-            bar.set_message(format!("{} RMSE {:.2} mm", cell.name(), m.rmse_mm));
-            bar.inc(1);
-            if cell.seed == 1 {
-                traces
-                    .lock()
-                    .map_err(|_| poisoned())?
-                    .push((cell.clone(), trace));
-            }
-            outcomes.lock().map_err(|_| poisoned())?.push(Outcome {
-                cell,
-                metrics: m,
-                wall_s,
-            });
-        }
+    let known = ["pid", "mpc", "smc-dob", "smc", "smc-dob-auto", "smc-auto"];
+    let controllers: Vec<String> = if args.controllers.is_empty() {
+        ["smc-dob-auto", "pid", "mpc", "smc-dob"]
+            .map(String::from)
+            .to_vec()
+    } else {
+        args.controllers.clone()
     };
-    std::thread::scope(|s| -> anyhow::Result<()> {
-        let handles: Vec<_> = (0..threads).map(|_| s.spawn(work)).collect();
-        for h in handles {
-            h.join().map_err(|_| anyhow::anyhow!("worker panicked"))??;
-        }
-        Ok(())
-    })?;
-    bar.finish();
-    Ok((
-        outcomes.into_inner().map_err(|_| poisoned())?,
-        traces.into_inner().map_err(|_| poisoned())?,
-    ))
+    if let Some(unknown) = controllers.iter().find(|c| !known.contains(&c.as_str())) {
+        anyhow::bail!(
+            "unknown controller {unknown:?} in --controllers; known: {}",
+            known.join(", ")
+        );
+    }
+    let cases = robustness::cases(&controllers, args.trials.max(1));
+    std::fs::create_dir_all(&args.out)?;
+    let start = Instant::now();
+    let runs = run_parallel(
+        cases,
+        args.threads.max(1),
+        |case, m: &Metrics| format!("{} RMSE {:.2} mm", case.name(), m.rmse_mm),
+        |case| {
+            let text = robustness::case_scenario(base, case)?;
+            let scenario = Scenario::parse(&text, &args.out.join(format!("{}.toml", case.name())))?;
+            let trace = fast_run(&scenario)?;
+            let reference = reference_of(&scenario)?;
+            Ok(metrics(
+                &trace,
+                &reference,
+                scenario.rig()?.coil_limits().coil_resistance_ohm,
+            ))
+        },
+    )?;
+    let outcomes: Vec<robustness::CaseOutcome> = runs
+        .into_iter()
+        .map(|(case, metrics)| robustness::CaseOutcome { case, metrics })
+        .collect();
+    let table = robustness::write_tables(&outcomes, &args.out)?;
+    println!("{table}");
+    println!(
+        "{} runs in {:.1} s (fast mode, {} threads)",
+        outcomes.len(),
+        start.elapsed().as_secs_f64(),
+        args.threads.max(1)
+    );
+    if report::register_font() {
+        robustness::heat_map(&outcomes, &args.out.join("robustness.png"))?;
+    } else {
+        eprintln!("no DejaVu font found (apt install fonts-dejavu-core): heat map skipped");
+    }
+    Ok(())
 }
 
 /// One cell's run in the selected mode (with its Rerun recording in fast mode), its metrics,

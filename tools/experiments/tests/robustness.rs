@@ -1,0 +1,52 @@
+//! The robustness matrix through the command line, for one controller and one seed: every
+//! axis and level at both loop rates becomes a row of robustness.md and robustness.csv, and the
+//! heat map is a PNG.
+
+use std::process::Command;
+
+#[test]
+fn the_robustness_matrix_reports_every_case() {
+    let root = fieldmaps::data_root();
+    let out = std::env::temp_dir().join(format!("millinav-robust-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let output = Command::new(env!("CARGO_BIN_EXE_experiments"))
+        .current_dir(&root)
+        .args([
+            "--robustness",
+            "--controllers",
+            "smc-dob-auto",
+            "--trials",
+            "1",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .expect("experiments runs");
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let expected = millinav_experiments::robustness::cases(&["smc-dob-auto".into()], 1);
+    let csv = std::fs::read_to_string(out.join("robustness.csv")).expect("robustness.csv");
+    assert_eq!(csv.lines().count(), expected.len() + 1, "{csv}");
+    let table = std::fs::read_to_string(out.join("robustness.md")).expect("robustness.md");
+    let rows = table
+        .lines()
+        .filter(|l| l.starts_with("| ") && l.contains(" Hz |"));
+    assert_eq!(rows.count(), expected.len(), "{table}");
+    // The nominal twin at 100 Hz, as in the matrix: the scheduled SMC-DOB completes.
+    assert!(
+        table.contains("| pulsation Hz | 3 | 100 Hz | smc-dob-auto | 1/1 |"),
+        "{table}"
+    );
+    if millinav_experiments::report::register_font() {
+        let png = std::fs::read(out.join("robustness.png")).expect("robustness.png");
+        assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    } else {
+        // Without a font the figure is skipped, and said so.
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains("heat map skipped"), "{stderr}");
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
