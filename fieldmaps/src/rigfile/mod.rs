@@ -256,6 +256,14 @@ impl Rig {
         Self::load(&paper_rig_path())
     }
 
+    /// The rig a tool's `--rig` names, else the paper's.
+    pub fn load_or_paper(path: Option<&Path>) -> Result<Self, RigFileError> {
+        match path {
+            Some(path) => Self::load(path),
+            None => Self::load_paper(),
+        }
+    }
+
     /// Parses `text` as the rig file at `path` (relative paths resolve against its directory).
     pub fn parse(text: &str, path: &Path) -> Result<Self, RigFileError> {
         let ctx = build::Ctx {

@@ -29,11 +29,7 @@ struct Args {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let rig_path = args
-        .rig
-        .clone()
-        .unwrap_or_else(fieldmaps::rigfile::paper_rig_path);
-    let rig = fieldmaps::rigfile::Rig::load(&rig_path)?;
+    let rig = fieldmaps::rigfile::Rig::load_or_paper(args.rig.as_deref())?;
     let path = args.frame.to_string_lossy().into_owned();
     let bgr = imgcodecs::imread(&path, imgcodecs::IMREAD_COLOR)
         .with_context(|| format!("reading {path}"))?;
@@ -47,7 +43,7 @@ fn main() -> anyhow::Result<()> {
     if (width as u32, height as u32) != (geometry.width_px, geometry.height_px) {
         bail!(
             "{path}: {width}x{height} px, but rig {} has a {}x{} camera",
-            rig_path.display(),
+            rig.path.display(),
             geometry.width_px,
             geometry.height_px
         );

@@ -31,11 +31,7 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let split =
         Split::load(&args.split).with_context(|| format!("loading {}", args.split.display()))?;
-    let rig_path = args
-        .rig
-        .clone()
-        .unwrap_or_else(fieldmaps::rigfile::paper_rig_path);
-    let rig = fieldmaps::rigfile::Rig::load(&rig_path)?;
+    let rig = fieldmaps::rigfile::Rig::load_or_paper(args.rig.as_deref())?;
     let size = CapsuleSize::of(&rig.robot);
     let mm_per_px = split
         .labels

@@ -43,11 +43,7 @@ struct Args {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let rig_path = args
-        .rig
-        .clone()
-        .unwrap_or_else(fieldmaps::rigfile::paper_rig_path);
-    let rig = Rig::load(&rig_path)?;
+    let rig = Rig::load_or_paper(args.rig.as_deref())?;
     for (offset, (name, count)) in [
         ("train", args.train),
         ("val", args.val),
