@@ -6,33 +6,25 @@
 //! Process set: the same at 10 Hz in still fluid, the delay measured from the frames' stamps.
 
 use millinav_experiments::report::paper_smc_dob_rmse_mm;
-use millinav_experiments::{fast_run, process_run, Cell, FlowSetting, Metrics};
+use millinav_experiments::{fast_run, process_run, set_in_table, Cell, FlowSetting, Metrics};
 use millinav_kit::scenario::Scenario;
 use millinav_tests::PaperCell;
 
 /// Sets `[plant.camera] latency_frames` and `[control.latency] compensate` of a base scenario.
 fn with_latency(base: &mut Scenario, latency_frames: u32, compensate: bool) {
-    let mut table = |section: &str, sub: &str, key: &str, value: toml::Value| {
-        let mut outer = base
-            .sections
-            .get(section)
-            .and_then(|v| v.as_table().cloned())
-            .unwrap_or_default();
-        let mut inner = outer
-            .get(sub)
-            .and_then(|v| v.as_table().cloned())
-            .unwrap_or_default();
-        inner.insert(key.into(), value);
-        outer.insert(sub.into(), inner.into());
-        base.sections.insert(section.into(), outer.into());
-    };
-    table(
-        "plant",
-        "camera",
-        "latency_frames",
+    let sections = &mut base.sections;
+    set_in_table(
+        sections,
+        &["plant", "camera", "latency_frames"],
         i64::from(latency_frames).into(),
-    );
-    table("control", "latency", "compensate", compensate.into());
+    )
+    .expect("plant.camera");
+    set_in_table(
+        sections,
+        &["control", "latency", "compensate"],
+        compensate.into(),
+    )
+    .expect("control.latency");
 }
 
 fn run(

@@ -151,6 +151,25 @@ pub fn rig_matrix(rig: &Rig, trials: u64, beyond: bool) -> Vec<Cell> {
     cells
 }
 
+/// Sets `path` (tables, then a key) in a scenario's TOML, creating the tables on the way.
+pub fn set_in_table(
+    doc: &mut toml::Table,
+    path: &[&str],
+    value: toml::Value,
+) -> anyhow::Result<()> {
+    let (key, tables) = path.split_last().context("empty key path")?;
+    let mut table = doc;
+    for name in tables {
+        table = table
+            .entry(name.to_string())
+            .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+            .as_table_mut()
+            .with_context(|| format!("scenario: {name} is not a table"))?;
+    }
+    table.insert(key.to_string(), value);
+    Ok(())
+}
+
 /// The scenario text of a cell: the base scenario's run, trajectory, plant and vision tables
 /// with the cell's fluid, flow map, controller and seed.
 pub fn cell_scenario(base: &Scenario, cell: &Cell) -> anyhow::Result<String> {

@@ -11,7 +11,7 @@ use millinav_experiments::report::{self, Outcome};
 use millinav_experiments::robustness;
 use millinav_experiments::{
     cell_scenario, fast_run, metrics, process_run, recorded_run, reference_of, rig_matrix,
-    write_rrd, Cell, Metrics, TraceRow,
+    set_in_table, write_rrd, Cell, Metrics, TraceRow,
 };
 use millinav_kit::scenario::Scenario;
 
@@ -139,14 +139,14 @@ fn load_base(args: &Args) -> anyhow::Result<Scenario> {
              them, got {latency_ms}",
             base.run.frame_period_ms
         );
-        set_in_sections(
+        set_in_table(
             &mut base.sections,
             &["plant", "camera", "latency_frames"],
             toml::Value::Integer(frames.round() as i64),
         )?;
     }
     if args.no_latency_compensation {
-        set_in_sections(
+        set_in_table(
             &mut base.sections,
             &["control", "latency", "compensate"],
             toml::Value::Boolean(false),
@@ -183,25 +183,6 @@ fn latency_note(base: &Scenario) -> String {
             "not compensated"
         }
     )
-}
-
-/// Sets `path` (tables, then a key) in a scenario's tables, creating the tables on the way.
-fn set_in_sections(
-    sections: &mut toml::Table,
-    path: &[&str],
-    value: toml::Value,
-) -> anyhow::Result<()> {
-    let (key, tables) = path.split_last().context("empty path")?;
-    let mut table = sections;
-    for name in tables {
-        table = table
-            .entry(name.to_string())
-            .or_insert_with(|| toml::Value::Table(toml::Table::new()))
-            .as_table_mut()
-            .with_context(|| format!("base scenario: {name} is not a table"))?;
-    }
-    table.insert(key.to_string(), value);
-    Ok(())
 }
 
 /// The matrix's cells that `--beyond`, `--controllers` and `--only` select (at least one).

@@ -11,7 +11,7 @@ use millinav_kit::scenario::Scenario;
 use plotters::prelude::*;
 
 use crate::report::paper_smc_dob_rmse_mm;
-use crate::{cell_scenario, Cell, FlowSetting, Metrics};
+use crate::{cell_scenario, set_in_table, Cell, FlowSetting, Metrics};
 
 /// A disturbance the matrix varies.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -135,28 +135,11 @@ pub fn cases(controllers: &[String], trials: u64) -> Vec<Case> {
     out
 }
 
-/// Sets `path` (tables, then a key) in `doc`, creating the tables on the way.
-fn set(doc: &mut toml::Table, path: &[&str], value: toml::Value) -> anyhow::Result<()> {
-    let (key, tables) = path
-        .split_last()
-        .ok_or_else(|| anyhow::anyhow!("empty path"))?;
-    let mut table = doc;
-    for name in tables {
-        table = table
-            .entry(name.to_string())
-            .or_insert_with(|| toml::Value::Table(toml::Table::new()))
-            .as_table_mut()
-            .ok_or_else(|| anyhow::anyhow!("scenario: {name} is not a table"))?;
-    }
-    table.insert(key.to_string(), value);
-    Ok(())
-}
-
 /// The scenario text of a case: the matrix cell's, at the case's loop rate, with its axis set.
 pub fn case_scenario(base: &Scenario, case: &Case) -> anyhow::Result<String> {
     let text = cell_scenario(base, &case.cell())?;
     let mut doc: toml::Table = toml::from_str(&text)?;
-    set(
+    set_in_table(
         &mut doc,
         &["run", "frame_period_ms"],
         case.frame_period_ms.into(),
@@ -164,39 +147,39 @@ pub fn case_scenario(base: &Scenario, case: &Case) -> anyhow::Result<String> {
     let level = case.level;
     match case.axis {
         Axis::PulsationHz => {
-            set(
+            set_in_table(
                 &mut doc,
                 &["plant", "physics", "pulsation_hz"],
                 level.into(),
             )?;
             // The lab sets the pump, so the controller knows its rate.
-            set(
+            set_in_table(
                 &mut doc,
                 &["control", "latency", "pulsation_hz"],
                 level.into(),
             )?;
         }
-        Axis::PulsationAmplitude => set(
+        Axis::PulsationAmplitude => set_in_table(
             &mut doc,
             &["plant", "physics", "pulsation_amplitude"],
             level.into(),
         )?,
-        Axis::FlowNoise => set(
+        Axis::FlowNoise => set_in_table(
             &mut doc,
             &["plant", "physics", "flow_noise", "fraction"],
             level.into(),
         )?,
-        Axis::Recirculation => set(
+        Axis::Recirculation => set_in_table(
             &mut doc,
             &["plant", "physics", "recirculation", "strength_fraction"],
             level.into(),
         )?,
-        Axis::CoilGainError => set(
+        Axis::CoilGainError => set_in_table(
             &mut doc,
             &["plant", "physics", "coil_gain_error_std"],
             level.into(),
         )?,
-        Axis::CameraLatencyMs => set(
+        Axis::CameraLatencyMs => set_in_table(
             &mut doc,
             &["plant", "camera", "latency_frames"],
             toml::Value::Integer((level / case.frame_period_ms).round() as i64),
