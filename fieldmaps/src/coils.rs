@@ -275,10 +275,6 @@ impl CoilSystem {
     }
 }
 
-/// Anything that gives each coil's current-normalized field and gradient at a point: the direct
-/// closed-form model ([`CoilSystem`]) or the interpolated grid maps
-/// ([`crate::fieldmap::CoilFieldMaps`]). Code written against this trait can swap one for the
-/// other.
 /// Shared field models (e.g. one set of loaded maps used by many simulated runs).
 impl<T: CoilField + ?Sized> CoilField for std::sync::Arc<T> {
     fn coil_count(&self) -> usize {
@@ -292,8 +288,17 @@ impl<T: CoilField + ?Sized> CoilField for std::sync::Arc<T> {
     ) -> (Vector3<f64>, Matrix3<f64>) {
         (**self).field_and_gradient_per_amp(coil, p)
     }
+
+    fn background_field(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        (**self).background_field(p)
+    }
 }
 
+/// Anything that gives each coil's current-normalized field and gradient at a point: the direct
+/// closed-form model ([`CoilSystem`]), the interpolated grid maps
+/// ([`crate::fieldmap::CoilFieldMaps`]) or either with a calibration
+/// ([`crate::calibration::CalibratedField`]). Code written against this trait can swap one for
+/// the other.
 pub trait CoilField {
     /// Number of independently driven coils.
     fn coil_count(&self) -> usize;
@@ -311,14 +316,21 @@ pub trait CoilField {
         self.field_and_gradient_per_amp(coil, p).0
     }
 
-    /// Superposed field (T) and gradient (T/m) for `currents_a[i]` in coil i. Currents past the
-    /// coil count are ignored and missing ones count as zero.
+    /// Field (T) present at `p` whatever the currents: a calibrated background (earth, steel,
+    /// remanence), uniform so without gradient. Zero unless a calibration says otherwise.
+    fn background_field(&self, _p: &Vector3<f64>) -> Vector3<f64> {
+        Vector3::zeros()
+    }
+
+    /// Superposed field (T) and gradient (T/m) for `currents_a[i]` in coil i, plus the
+    /// background field. Currents past the coil count are ignored and missing ones count as
+    /// zero.
     fn field_and_gradient(
         &self,
         currents_a: &[f64],
         p: &Vector3<f64>,
     ) -> (Vector3<f64>, Matrix3<f64>) {
-        let mut b = Vector3::zeros();
+        let mut b = self.background_field(p);
         let mut g = Matrix3::zeros();
         for (coil, &i) in currents_a.iter().enumerate().take(self.coil_count()) {
             if i != 0.0 {

@@ -9,6 +9,8 @@
 //! - [`coils`]: the 12-coil electromagnet (closed-form Biot–Savart), calibrated to the paper's FEA.
 //! - [`fieldmap`]: current-normalized coil field maps on a 3D grid (file format, checked
 //!   loading, trilinear interpolation); a drop-in [`coils::CoilField`] for the direct model.
+//! - [`calibration`]: per-coil gain / 3 × 3 corrections and a background field fitted to
+//!   gaussmeter data, applied over a base model.
 //! - [`allocation`]: current allocation (paper Eq. 2–4), current/power limiting, and the
 //!   constrained (QP/SOCP, Clarabel) allocation that respects both limits.
 //! - [`phantom`]: parametric top-view heart phantom (signed distance field, raster mask).
@@ -16,6 +18,7 @@
 //!   and validation (`fieldmaps/rigs/FORMAT.md`).
 
 pub mod allocation;
+pub mod calibration;
 pub mod coils;
 mod elliptic;
 pub mod fieldmap;

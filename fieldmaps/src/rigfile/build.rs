@@ -14,6 +14,7 @@ use super::{
     RigFileError, RigPhantom, Route, Zone, ZoneKind, MAX_FILAMENTS, MAX_RIG_COILS,
 };
 use super::{RIG_FORMAT, RIG_VERSION};
+use crate::calibration::{CalibratedField, CoilCalibration};
 use crate::coils::{Coil, CoilSystem, Winding};
 use crate::fieldmap::CoilFieldMaps;
 use crate::flowmap::FlowMap;
@@ -138,15 +139,22 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
     }
     let coils = build_coils(ctx, &file.coils)?;
     let em = &file.electromagnet;
-    let field_model = parse_field_model(ctx, "electromagnet.field_model", &em.field_model)?;
-    let coil_field = build_field(ctx, "electromagnet.field_model", &field_model, &coils)?;
-    let (twin_field_model, twin_coil_field) = match &em.twin_field_model {
-        None => (field_model.clone(), coil_field.clone()),
+    let field = "electromagnet.field_model";
+    let (field_model, field_calibration) = parse_field_model(ctx, field, &em.field_model)?;
+    let coil_field = build_field(ctx, field, &field_model, &coils)?;
+    let coil_field = calibrate_field(ctx, field, coil_field, field_calibration.as_deref(), &coils)?;
+    let (twin_field_model, twin_field_calibration, twin_coil_field) = match &em.twin_field_model {
+        None => (
+            field_model.clone(),
+            field_calibration.clone(),
+            coil_field.clone(),
+        ),
         Some(text) => {
             let field = "electromagnet.twin_field_model";
-            let model = parse_field_model(ctx, field, text)?;
+            let (model, calibration) = parse_field_model(ctx, field, text)?;
             let built = build_field(ctx, field, &model, &coils)?;
-            (model, built)
+            let built = calibrate_field(ctx, field, built, calibration.as_deref(), &coils)?;
+            (model, calibration, built)
         }
     };
     require_positive(ctx, "electromagnet.max_total_power_w", em.max_total_power_w)?;
@@ -164,8 +172,10 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
         description: file.description,
         coils,
         field_model,
+        field_calibration,
         coil_field,
         twin_field_model,
+        twin_field_calibration,
         twin_coil_field,
         max_total_power_w: em.max_total_power_w,
         allocation_coils,
@@ -268,19 +278,63 @@ fn build_coils(
     Ok(coils)
 }
 
-fn parse_field_model(ctx: &Ctx<'_>, field: &str, text: &str) -> Result<FieldModel, RigFileError> {
-    match text.trim() {
-        "analytic" => Ok(FieldModel::Analytic),
-        other => match other.strip_prefix("maps:") {
-            Some(dir) if !dir.trim().is_empty() => {
-                Ok(FieldModel::Maps(ctx.resolve(Path::new(dir.trim()))))
-            }
-            _ => Err(ctx.err(
-                field,
-                format!("must be \"analytic\" or \"maps:<dir>\", got {text:?}"),
-            )),
+/// `<base>` or `<base> + calibration:<file>`, base `analytic` or `maps:<dir>`.
+fn parse_field_model(
+    ctx: &Ctx<'_>,
+    field: &str,
+    text: &str,
+) -> Result<(FieldModel, Option<PathBuf>), RigFileError> {
+    let usage = || {
+        ctx.err(
+            field,
+            format!(
+                "must be \"analytic\" or \"maps:<dir>\", optionally followed by \
+                 \" + calibration:<file>\"; got {text:?}"
+            ),
+        )
+    };
+    let mut parts = text.split('+').map(str::trim);
+    let base = match parts.next().unwrap_or_default() {
+        "analytic" => FieldModel::Analytic,
+        other => match other.strip_prefix("maps:").map(str::trim) {
+            Some(dir) if !dir.is_empty() => FieldModel::Maps(ctx.resolve(Path::new(dir))),
+            _ => return Err(usage()),
         },
+    };
+    let calibration = match parts.next() {
+        None => None,
+        Some(part) => match part.strip_prefix("calibration:").map(str::trim) {
+            Some(file) if !file.is_empty() => Some(ctx.resolve(Path::new(file))),
+            _ => return Err(usage()),
+        },
+    };
+    if parts.next().is_some() {
+        return Err(usage());
     }
+    Ok((base, calibration))
+}
+
+/// `base` with the calibration file's corrections, in the rig's coil order.
+fn calibrate_field(
+    ctx: &Ctx<'_>,
+    field: &str,
+    base: RigCoilField,
+    calibration: Option<&Path>,
+    coils: &[RigCoil],
+) -> Result<RigCoilField, RigFileError> {
+    let Some(path) = calibration else {
+        return Ok(base);
+    };
+    let cal = CoilCalibration::load(path).map_err(|e| ctx.err(field, e.to_string()))?;
+    let names: Vec<&str> = coils.iter().map(|c| c.name.as_str()).collect();
+    let corrections = cal
+        .ordered_for(&names)
+        .map_err(|why| ctx.err(field, format!("{}: {why}", path.display())))?;
+    Ok(RigCoilField::Calibrated(Arc::new(CalibratedField {
+        base,
+        corrections,
+        background_t: cal.background_t,
+    })))
 }
 
 fn build_field(

@@ -17,6 +17,7 @@ use std::sync::Arc;
 use nalgebra::{Matrix3, Unit, Vector2, Vector3};
 use thiserror::Error;
 
+use crate::calibration::CalibratedField;
 use crate::coils::{CoilField, CoilSystem, Winding};
 use crate::fieldmap::CoilFieldMaps;
 use crate::mask::CanalMask;
@@ -88,6 +89,8 @@ pub enum FieldModel {
 pub enum RigCoilField {
     Analytic(CoilSystem),
     Maps(Arc<CoilFieldMaps>),
+    /// A base model with the corrections of a calibration file (`<base> + calibration:<file>`).
+    Calibrated(Arc<CalibratedField<RigCoilField>>),
 }
 
 impl CoilField for RigCoilField {
@@ -95,6 +98,7 @@ impl CoilField for RigCoilField {
         match self {
             RigCoilField::Analytic(system) => system.len(),
             RigCoilField::Maps(maps) => maps.coil_count(),
+            RigCoilField::Calibrated(field) => field.coil_count(),
         }
     }
 
@@ -106,6 +110,24 @@ impl CoilField for RigCoilField {
         match self {
             RigCoilField::Analytic(system) => system.field_and_gradient_per_amp(coil, p),
             RigCoilField::Maps(maps) => maps.field_and_gradient_per_amp(coil, p),
+            RigCoilField::Calibrated(field) => field.field_and_gradient_per_amp(coil, p),
+        }
+    }
+
+    fn background_field(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        match self {
+            RigCoilField::Calibrated(field) => field.background_field(p),
+            _ => Vector3::zeros(),
+        }
+    }
+}
+
+impl RigCoilField {
+    /// The uncalibrated model underneath (itself when not calibrated).
+    pub fn base(&self) -> &RigCoilField {
+        match self {
+            RigCoilField::Calibrated(field) => field.base.base(),
+            other => other,
         }
     }
 }
@@ -224,11 +246,15 @@ pub struct Rig {
     pub name: String,
     pub description: String,
     pub coils: Vec<RigCoil>,
-    /// The model control plans with (`electromagnet.field_model`).
+    /// The model control plans with (`electromagnet.field_model`), without its calibration.
     pub field_model: FieldModel,
+    /// The calibration file `field_model` adds (`+ calibration:<file>`), if any.
+    pub field_calibration: Option<PathBuf>,
+    /// The model control plans with, calibration applied.
     pub coil_field: RigCoilField,
     /// The model the twin's physics uses (`electromagnet.twin_field_model`, else `field_model`).
     pub twin_field_model: FieldModel,
+    pub twin_field_calibration: Option<PathBuf>,
     pub twin_coil_field: RigCoilField,
     /// Total ohmic power over all coils, W.
     pub max_total_power_w: f64,
@@ -306,10 +332,13 @@ impl Rig {
         let mut s = String::new();
         let g = &self.camera.geometry;
         let m = self.phantom.mask.geometry();
-        let model = match &self.field_model {
+        let mut model = match &self.field_model {
             FieldModel::Analytic => "analytic (Biot–Savart)".to_string(),
             FieldModel::Maps(dir) => format!("maps ({})", dir.display()),
         };
+        if let Some(cal) = &self.field_calibration {
+            model.push_str(&format!(" + calibration ({})", cal.display()));
+        }
         let names = |ids: &[usize]| {
             ids.iter()
                 .map(|&i| self.coils[i].name.as_str())

@@ -14,6 +14,7 @@ use std::sync::Arc;
 use fieldmaps::allocation::{
     actuation_matrix_from, allocate_constrained, allocate_limited, ConstrainedSettings,
 };
+use fieldmaps::coils::CoilField;
 use fieldmaps::physics;
 use fieldmaps::rig::{CoilLimits, RobotParams};
 use fieldmaps::rigfile::Rig;
@@ -312,7 +313,9 @@ impl ControlLoop {
         let omega0 = self.config.omega0_n_per_t;
         let coil_ids = &self.coil_ids;
         let a = actuation_matrix_from(&self.rig.coil_field, &p3, &moment, coil_ids, omega0);
-        let b = self.desired_field();
+        // The coils make the desired field less the calibrated background, which is there anyway.
+        let background = self.rig.coil_field.background_field(&p3);
+        let b = self.desired_field() - background.xy();
         let c = DVector::from_vec(vec![force.x, force.y, omega0 * b.x, omega0 * b.y]);
         let mut currents = [0.0; MAX_COILS];
         let allocated = if self.config.constrained_allocation {
