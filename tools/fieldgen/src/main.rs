@@ -18,6 +18,9 @@ enum Command {
     Cfd(fieldgen::cfd::CfdArgs),
     /// Convert an ANSYS Fluent or OpenFOAM export into a millinav flow map.
     Import(fieldgen::import::ImportArgs),
+    /// Import per-coil field data (COMSOL, ANSYS Maxwell, CSV; FEA or measured) into coil maps,
+    /// gradients from a curl- and divergence-free local fit.
+    ImportCoils(fieldgen::import_coils::ImportCoilsArgs),
     /// Fit per-coil gains (or 3x3 corrections) and a background field to gaussmeter
     /// measurements; writes the calibration file a rig's field_model references.
     FitCoils(fieldgen::fit_coils::FitCoilsArgs),
@@ -34,6 +37,7 @@ fn main() -> anyhow::Result<()> {
         Command::Coils(args) => fieldgen::coils::run(&args),
         Command::Cfd(args) => fieldgen::cfd::run(&args),
         Command::Import(args) => fieldgen::import::run(&args),
+        Command::ImportCoils(args) => fieldgen::import_coils::run(&args),
         Command::FitCoils(args) => fieldgen::fit_coils::run(&args),
         Command::RigCheck(args) => fieldgen::rig_check::run(&args),
     }
