@@ -188,25 +188,113 @@ pub fn allocate_pinv_rcond(
     Ok(v_t.tr_mul(&y))
 }
 
+/// Per-coil ratings of the coils an allocation drives (in its column order): each coil's
+/// current limit and resistance, and the total power budget over them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CoilRatings {
+    pub max_current_a: DVector<f64>,
+    pub resistance_ohm: DVector<f64>,
+    pub max_total_power_w: f64,
+}
+
+impl CoilRatings {
+    /// `n` coils that share one rating.
+    pub fn uniform(limits: &CoilLimits, n: usize) -> Self {
+        Self {
+            max_current_a: DVector::from_element(n, limits.max_current_a),
+            resistance_ohm: DVector::from_element(n, limits.coil_resistance_ohm),
+            max_total_power_w: limits.max_total_power_w,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.max_current_a.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.max_current_a.is_empty()
+    }
+
+    fn valid(&self) -> Result<(), AllocationError> {
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        if self.resistance_ohm.len() != self.len() {
+            return Err(AllocationError::BadLimits(
+                "one resistance per current limit".into(),
+            ));
+        }
+        if !positive(self.max_total_power_w)
+            || !self.max_current_a.iter().all(|&v| positive(v))
+            || !self.resistance_ohm.iter().all(|&v| positive(v))
+        {
+            return Err(AllocationError::BadLimits(
+                "current limits, resistances and the power budget must be finite and > 0".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The same limits in the model's effective currents I·g(I) of saturating coils (`curves`
+    /// in this order; `None` for a linear coil): the current limit becomes I_max·g(I_max) and
+    /// the resistance R / g(I_max)², exact at the limit and conservative below it for a gain that
+    /// falls with current.
+    pub fn effective(&self, curves: &[Option<crate::rig::SaturationCurve>]) -> Self {
+        let mut out = self.clone();
+        for (k, curve) in curves.iter().enumerate().take(self.len()) {
+            if let Some(curve) = curve {
+                let g = curve.gain(self.max_current_a[k]);
+                out.max_current_a[k] = self.max_current_a[k] * g;
+                out.resistance_ohm[k] = self.resistance_ohm[k] / (g * g);
+            }
+        }
+        out
+    }
+
+    /// Σ I_k² R_k, W.
+    pub fn power_w(&self, currents: &DVector<f64>) -> f64 {
+        currents
+            .iter()
+            .zip(self.resistance_ohm.iter())
+            .map(|(i, r)| i * i * r)
+            .sum()
+    }
+}
+
 /// Scale all currents by one factor s ≤ 1 so that no |I_k| exceeds `max_current_a` and
 /// Σ I_k² R ≤ `max_total_power_w`. Uniform scaling keeps the direction of A·I (the commanded
 /// force/field direction) and only shortens it. Returns true if the currents were changed.
 ///
 /// Non-finite currents or invalid limits zero every current (the safe state) and return true.
 pub fn clamp_to_limits(currents: &mut DVector<f64>, limits: &CoilLimits) -> bool {
-    if limits.validate().is_err() || currents.iter().any(|i| !i.is_finite()) {
+    if limits.validate().is_err() {
         let changed = currents.iter().any(|&i| i != 0.0);
         currents.fill(0.0);
         return changed;
     }
-    let peak = currents.amax();
-    let power = currents.norm_squared() * limits.coil_resistance_ohm;
-    let mut scale: f64 = 1.0;
-    if peak > limits.max_current_a {
-        scale = scale.min(limits.max_current_a / peak);
+    clamp_to_ratings(currents, &CoilRatings::uniform(limits, currents.len()))
+}
+
+/// [`clamp_to_limits`] with each coil's own current limit and resistance.
+pub fn clamp_to_ratings(currents: &mut DVector<f64>, ratings: &CoilRatings) -> bool {
+    if ratings.valid().is_err()
+        || ratings.len() != currents.len()
+        || currents.iter().any(|i| !i.is_finite())
+    {
+        let changed = currents.iter().any(|&i| i != 0.0);
+        currents.fill(0.0);
+        return changed;
     }
-    if power > limits.max_total_power_w {
-        scale = scale.min((limits.max_total_power_w / power).sqrt());
+    let peak_ratio = currents
+        .iter()
+        .zip(ratings.max_current_a.iter())
+        .map(|(i, m)| i.abs() / m)
+        .fold(0.0, f64::max);
+    let power = ratings.power_w(currents);
+    let mut scale: f64 = 1.0;
+    if peak_ratio > 1.0 {
+        scale = scale.min(1.0 / peak_ratio);
+    }
+    if power > ratings.max_total_power_w {
+        scale = scale.min((ratings.max_total_power_w / power).sqrt());
     }
     if scale >= 1.0 {
         return false;
@@ -231,9 +319,22 @@ pub fn allocate_limited(
     c: &DVector<f64>,
     limits: &CoilLimits,
 ) -> Result<Allocation, AllocationError> {
+    limits
+        .validate()
+        .map_err(|e| AllocationError::BadLimits(e.to_string()))?;
+    allocate_limited_rated(a, c, &CoilRatings::uniform(limits, a.ncols()))
+}
+
+/// [`allocate_pinv`] then [`clamp_to_ratings`].
+pub fn allocate_limited_rated(
+    a: &DMatrix<f64>,
+    c: &DVector<f64>,
+    ratings: &CoilRatings,
+) -> Result<Allocation, AllocationError> {
+    ratings.valid()?;
     let mut currents_a = allocate_pinv(a, c)?;
     let before = currents_a.norm();
-    let scale = if clamp_to_limits(&mut currents_a, limits) && before > 0.0 {
+    let scale = if clamp_to_ratings(&mut currents_a, ratings) && before > 0.0 {
         currents_a.norm() / before
     } else {
         1.0
@@ -312,10 +413,29 @@ pub fn allocate_constrained(
     limits: &CoilLimits,
     settings: &ConstrainedSettings,
 ) -> Result<ConstrainedAllocation, AllocationError> {
-    check_command(a, c)?;
     limits
         .validate()
         .map_err(|e| AllocationError::BadLimits(e.to_string()))?;
+    allocate_constrained_rated(a, c, &CoilRatings::uniform(limits, a.ncols()), settings)
+}
+
+/// [`allocate_constrained`] with each coil's own current limit and resistance: the box is
+/// |I_k| ≤ I_max,k and the cone Σ I_k² R_k ≤ P_max.
+pub fn allocate_constrained_rated(
+    a: &DMatrix<f64>,
+    c: &DVector<f64>,
+    ratings: &CoilRatings,
+    settings: &ConstrainedSettings,
+) -> Result<ConstrainedAllocation, AllocationError> {
+    check_command(a, c)?;
+    ratings.valid()?;
+    if ratings.len() != a.ncols() {
+        return Err(AllocationError::BadLimits(format!(
+            "{} coil ratings for {} coils",
+            ratings.len(),
+            a.ncols()
+        )));
+    }
     let eps = settings.regularization;
     if !(eps.is_finite() && eps >= 0.0) {
         return Err(AllocationError::BadSettings(
@@ -351,9 +471,10 @@ pub fn allocate_constrained(
     if n == 0 {
         return Err(AllocationError::Degenerate);
     }
-    let i_max = limits.max_current_a;
-    // Normalised problem: x = I / I_max, Â = W^½ A I_max / s, Ĉ = W^½ C / s with ‖Â‖_F = 1.
-    let aw = DMatrix::from_fn(a.nrows(), n, |r, k| w_sqrt[r] * a[(r, k)] * i_max);
+    let i_max = &ratings.max_current_a;
+    // Normalised problem: x_k = I_k / I_max,k, Â = W^½ A diag(I_max) / s, Ĉ = W^½ C / s with
+    // ‖Â‖_F = 1.
+    let aw = DMatrix::from_fn(a.nrows(), n, |r, k| w_sqrt[r] * a[(r, k)] * i_max[k]);
     let cw = c.component_mul(&w_sqrt);
     let s = aw.norm();
     if !(s.is_finite() && s > 0.0) {
@@ -361,7 +482,10 @@ pub fn allocate_constrained(
     }
     let ah = aw / s;
     let ch = &cw / s;
-    let rho = (limits.max_total_power_w / limits.coil_resistance_ohm).sqrt() / i_max;
+    // Power Σ x_k² I_max,k² R_k ≤ P_max as ‖d ⊙ x‖ ≤ 1.
+    let power_weights = DVector::from_fn(n, |k, _| {
+        i_max[k] * (ratings.resistance_ohm[k] / ratings.max_total_power_w).sqrt()
+    });
     let residual_of = |x: &DVector<f64>| {
         let cn = ch.norm();
         if cn == 0.0 {
@@ -381,9 +505,9 @@ pub fn allocate_constrained(
 
     let mut iterations = 0;
     let finish = |mut x: DVector<f64>, status: AllocationStatus, iterations: u32| {
-        let mut currents_a = x.clone() * i_max;
-        clamp_to_limits(&mut currents_a, limits);
-        x = &currents_a / i_max;
+        let mut currents_a = x.component_mul(i_max);
+        clamp_to_ratings(&mut currents_a, ratings);
+        x = currents_a.component_div(i_max);
         let relative_residual = residual_of(&x);
         let status = match status {
             AllocationStatus::Exact if relative_residual > tol => AllocationStatus::BestEffort,
@@ -401,7 +525,13 @@ pub fn allocate_constrained(
     // Stage 1: least norm subject to Â x = Ĉ and the limits.
     let p1 = dense_csc_upper(&DMatrix::identity(n, n));
     let q1 = vec![0.0; n];
-    if let Some(sol) = solve_limited_socp(&p1, &q1, Some((&ah, &ch)), rho, settings.max_iter) {
+    if let Some(sol) = solve_limited_socp(
+        &p1,
+        &q1,
+        Some((&ah, &ch)),
+        &power_weights,
+        settings.max_iter,
+    ) {
         iterations += sol.iterations;
         if let Some(mut x) = sol.x {
             // Polish: remove the interior-point tolerance from the equality by a least-norm
@@ -421,7 +551,7 @@ pub fn allocate_constrained(
     // Stage 2: min ‖Â x − Ĉ‖² + ε‖x‖² (½xᵀPx + qᵀx with P = 2(ÂᵀÂ + εI), q = −2ÂᵀĈ).
     let p2 = dense_csc_upper(&((ah.tr_mul(&ah) + DMatrix::identity(n, n) * eps) * 2.0));
     let q2: Vec<f64> = (ah.tr_mul(&ch) * -2.0).iter().copied().collect();
-    if let Some(sol) = solve_limited_socp(&p2, &q2, None, rho, settings.max_iter) {
+    if let Some(sol) = solve_limited_socp(&p2, &q2, None, &power_weights, settings.max_iter) {
         iterations += sol.iterations;
         if let Some(x) = sol.x {
             return Ok(finish(x, AllocationStatus::BestEffort, iterations));
@@ -429,8 +559,8 @@ pub fn allocate_constrained(
     }
 
     // Solver failure: the uniform-scaling fallback, still within the limits.
-    let fb = allocate_limited(a, c, limits)?;
-    let x = &fb.currents_a / i_max;
+    let fb = allocate_limited_rated(a, c, ratings)?;
+    let x = fb.currents_a.component_div(i_max);
     Ok(finish(x, AllocationStatus::Fallback, iterations))
 }
 
@@ -458,12 +588,12 @@ fn dense_csc_upper(m: &DMatrix<f64>) -> clarabel::algebra::CscMatrix<f64> {
     clarabel::algebra::CscMatrix::new(n, n, colptr, rowval, nzval)
 }
 
-/// Solve min ½xᵀPx + qᵀx s.t. [Â x = Ĉ], |x_k| ≤ 1, ‖x‖₂ ≤ rho with Clarabel.
+/// Solve min ½xᵀPx + qᵀx s.t. [Â x = Ĉ], |x_k| ≤ 1, ‖d ⊙ x‖₂ ≤ 1 with Clarabel.
 fn solve_limited_socp(
     p: &clarabel::algebra::CscMatrix<f64>,
     q: &[f64],
     equality: Option<(&DMatrix<f64>, &DVector<f64>)>,
-    rho: f64,
+    d: &DVector<f64>,
     max_iter: u32,
 ) -> Option<SocpSolution> {
     use clarabel::solver::{
@@ -475,7 +605,7 @@ fn solve_limited_socp(
     //   [Â]  x + s = Ĉ         s ∈ {0}^m      (stage 1 only)
     //   [ I] x + s = 1         s ≥ 0          (x ≤ 1)
     //   [−I] x + s = 1         s ≥ 0          (−x ≤ 1)
-    //   [0ᵀ; −I] x + s = [rho; 0]   s ∈ SOC    (‖x‖ ≤ rho)
+    //   [0ᵀ; −diag d] x + s = [1; 0]   s ∈ SOC    (‖d ⊙ x‖ ≤ 1)
     let rows = m_eq + 2 * n + 1 + n;
     let mut colptr = Vec::with_capacity(n + 1);
     let mut rowval = Vec::new();
@@ -493,7 +623,7 @@ fn solve_limited_socp(
         rowval.push(m_eq + n + k);
         nzval.push(-1.0);
         rowval.push(m_eq + 2 * n + 1 + k);
-        nzval.push(-1.0);
+        nzval.push(-d[k]);
         colptr.push(rowval.len());
     }
     let g = clarabel::algebra::CscMatrix::new(rows, n, colptr, rowval, nzval);
@@ -502,7 +632,7 @@ fn solve_limited_socp(
         h.extend(c.iter().copied());
     }
     h.extend(std::iter::repeat_n(1.0, 2 * n));
-    h.push(rho);
+    h.push(1.0);
     h.extend(std::iter::repeat_n(0.0, n));
     let mut cones = Vec::with_capacity(3);
     if m_eq > 0 {
@@ -688,6 +818,52 @@ mod tests {
         let out = allocate_limited(&a, &c, &CoilLimits::default()).unwrap();
         assert!(out.scale < 1.0 && out.scale > 0.0);
         assert!((&a * &out.currents_a - &c * out.scale).norm() < 1e-9 * c.norm() * out.scale);
+    }
+
+    #[test]
+    fn per_coil_ratings_hold_and_beat_the_weakest_coil_for_all() {
+        // The west coils are half as strong (3 A) and twice the resistance of the others.
+        let sys = CoilSystem::paper_rig();
+        let m = in_plane_moment(8.6e-4, 0.3);
+        let p = Vector3::new(0.005, -0.01, 0.0);
+        let a = actuation_matrix(&sys, &p, &m, &DEFAULT_PLANAR_COILS, OMEGA0);
+        let n = DEFAULT_PLANAR_COILS.len();
+        let mut ratings = CoilRatings::uniform(&CoilLimits::default(), n);
+        for k in [6, 7] {
+            ratings.max_current_a[k] = 3.0;
+            ratings.resistance_ohm[k] = 20.0;
+        }
+        let weakest = CoilLimits {
+            max_current_a: 3.0,
+            coil_resistance_ohm: 20.0,
+            ..CoilLimits::default()
+        };
+        let settings = ConstrainedSettings::default();
+        let (mut rated_force, mut uniform_force) = (0.0, 0.0);
+        for k in 0..16 {
+            let angle = k as f64 * std::f64::consts::TAU / 16.0;
+            let c = DVector::from_vec(vec![angle.cos() * 1e-2, angle.sin() * 1e-2, 0.0, 0.0]);
+            let rated = allocate_constrained_rated(&a, &c, &ratings, &settings).unwrap();
+            let i = &rated.currents_a;
+            for j in 0..n {
+                assert!(i[j].abs() <= ratings.max_current_a[j] * (1.0 + 1e-9), "{i}");
+            }
+            assert!(ratings.power_w(i) <= ratings.max_total_power_w * (1.0 + 1e-9));
+            let uniform = allocate_constrained(&a, &c, &weakest, &settings).unwrap();
+            let force = |i: &DVector<f64>| {
+                let w = &a * i;
+                (w[0] * angle.cos() + w[1] * angle.sin()).max(0.0)
+            };
+            rated_force += force(i);
+            uniform_force += force(&uniform.currents_a);
+            let mut clamped = i * 3.0;
+            assert!(clamp_to_ratings(&mut clamped, &ratings));
+            assert!(ratings.power_w(&clamped) <= ratings.max_total_power_w * (1.0 + 1e-9));
+        }
+        assert!(
+            rated_force > 1.2 * uniform_force,
+            "{rated_force} vs {uniform_force}"
+        );
     }
 
     fn within_limits(i: &DVector<f64>, limits: &CoilLimits) -> bool {

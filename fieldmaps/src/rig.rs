@@ -358,3 +358,118 @@ mod tests {
         assert!(CoilLimits::default().current_for_power(f64::NAN).is_err());
     }
 }
+
+/// A coil's saturation: the effective gain g(|I|) = B(I) / (I · B̃) relative to the
+/// current-normalised field model, given at a few currents and interpolated linearly (gain 1 at
+/// zero current unless the first point says otherwise; the last gain holds beyond the last
+/// point). The field magnitude I·g(I) must grow with the current, so every field the coil can
+/// make has one current.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SaturationCurve {
+    /// (current A, gain), currents ascending and ≥ 0.
+    points: Vec<(f64, f64)>,
+}
+
+impl SaturationCurve {
+    /// Checks the points: currents ≥ 0 strictly ascending, gains finite > 0, I·g(I) increasing.
+    pub fn new(points: &[[f64; 2]]) -> Result<Self, String> {
+        if points.is_empty() {
+            return Err("needs at least one [current_a, gain] point".into());
+        }
+        let mut pts: Vec<(f64, f64)> = Vec::with_capacity(points.len() + 1);
+        if points[0][0] > 0.0 {
+            pts.push((0.0, 1.0));
+        }
+        for (k, p) in points.iter().enumerate() {
+            let [i, g] = *p;
+            if !(i.is_finite() && i >= 0.0 && g.is_finite() && g > 0.0) {
+                return Err(format!(
+                    "point {k}: current must be finite and >= 0, gain finite and > 0, got [{i}, {g}]"
+                ));
+            }
+            if let Some(&(prev, _)) = pts.last() {
+                if i <= prev {
+                    return Err(format!(
+                        "point {k}: currents must ascend ({i} A after {prev} A)"
+                    ));
+                }
+            }
+            pts.push((i, g));
+        }
+        // I·g(I) is quadratic on each segment; its slope g + I g' is linear there, so positive
+        // slopes at both ends of every segment make it increasing.
+        for w in pts.windows(2) {
+            let ((i0, g0), (i1, g1)) = (w[0], w[1]);
+            let slope = (g1 - g0) / (i1 - i0);
+            if g0 + i0 * slope <= 0.0 || g1 + i1 * slope <= 0.0 {
+                return Err(format!(
+                    "the field I·g(I) must grow with the current; it falls between {i0} A and {i1} A"
+                ));
+            }
+        }
+        Ok(Self { points: pts })
+    }
+
+    /// Gain at current magnitude `i_abs`.
+    pub fn gain(&self, i_abs: f64) -> f64 {
+        let pts = &self.points;
+        if i_abs <= pts[0].0 {
+            return pts[0].1;
+        }
+        for w in pts.windows(2) {
+            let ((i0, g0), (i1, g1)) = (w[0], w[1]);
+            if i_abs <= i1 {
+                return g0 + (g1 - g0) * (i_abs - i0) / (i1 - i0);
+            }
+        }
+        pts[pts.len() - 1].1
+    }
+
+    /// The current-normalised model's equivalent current of a real current: I · g(|I|).
+    pub fn effective(&self, current_a: f64) -> f64 {
+        current_a * self.gain(current_a.abs())
+    }
+
+    /// The real current whose [`Self::effective`] current is `effective_a` (bisection on the
+    /// increasing I·g(I)).
+    pub fn actual_for(&self, effective_a: f64) -> f64 {
+        let target = effective_a.abs();
+        if !target.is_finite() {
+            return 0.0;
+        }
+        let mut hi = target / self.gain(target).max(1e-6) + 1.0;
+        while self.effective(hi) < target {
+            hi *= 2.0;
+        }
+        let mut lo = 0.0;
+        for _ in 0..80 {
+            let mid = 0.5 * (lo + hi);
+            if self.effective(mid) < target {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        0.5 * (lo + hi) * effective_a.signum()
+    }
+}
+
+#[cfg(test)]
+mod saturation_tests {
+    use super::SaturationCurve;
+
+    #[test]
+    fn curve_interpolates_and_inverts() {
+        let c = SaturationCurve::new(&[[2.0, 1.0], [6.0, 0.85]]).unwrap();
+        assert_eq!(c.gain(1.0), 1.0);
+        assert!((c.gain(4.0) - 0.925).abs() < 1e-12);
+        assert_eq!(c.gain(9.0), 0.85);
+        for i in [-5.5, -0.3, 0.0, 2.5, 5.9, 7.0] {
+            assert!((c.actual_for(c.effective(i)) - i).abs() < 1e-9, "{i}");
+        }
+        assert!(SaturationCurve::new(&[]).is_err());
+        assert!(SaturationCurve::new(&[[3.0, 1.0], [2.0, 0.9]]).is_err());
+        // Field falls: 1 A × 1.0 then 2 A × 0.4.
+        assert!(SaturationCurve::new(&[[1.0, 1.0], [2.0, 0.4]]).is_err());
+    }
+}

@@ -420,6 +420,40 @@ fn bad_coil_values() {
         "coils[0].turns",
         "required by the analytic field model",
     );
+    // Saturation curves: loaded when sound, refused when the field would fall with current.
+    let sat =
+        "max_current_a = 6.0                 # derived: I = V/R = 60 V / 10 Ω = sqrt(360 W / 10 Ω)
+";
+    let t = replace_once(
+        &base,
+        sat,
+        "max_current_a = 6.0
+saturation = [[2.0, 1.0], [6.0, 0.8]]
+",
+    );
+    let dir = TempDir::new("saturation");
+    let path = dir.0.join("sat.toml");
+    std::fs::write(&path, &t).unwrap();
+    let rig = Rig::load(&path).unwrap_or_else(|e| panic!("{e}"));
+    let curve = rig.coils[0].saturation.as_ref().expect("coil 0 saturates");
+    assert!((curve.gain(6.0) - 0.8).abs() < 1e-12);
+    assert!(rig.coils[1].saturation.is_none());
+    let t = replace_once(
+        &base,
+        sat,
+        "max_current_a = 6.0
+saturation = [[1.0, 1.0], [2.0, 0.3]]
+",
+    );
+    expect_err("falling-field", &t, "coils[0].saturation", "must grow");
+    let t = replace_once(
+        &base,
+        sat,
+        "max_current_a = 6.0
+saturation = [[3.0, 1.0], [2.0, 0.9]]
+",
+    );
+    expect_err("unsorted-saturation", &t, "coils[0].saturation", "ascend");
 }
 
 #[test]

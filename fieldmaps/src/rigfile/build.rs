@@ -265,6 +265,13 @@ fn build_coils(
         };
         require_positive(ctx, &at("resistance_ohm"), c.resistance_ohm)?;
         require_positive(ctx, &at("max_current_a"), c.max_current_a)?;
+        let saturation = match &c.saturation {
+            None => None,
+            Some(points) => Some(
+                crate::rig::SaturationCurve::new(points)
+                    .map_err(|e| ctx.err(at("saturation"), e))?,
+            ),
+        };
         coils.push(RigCoil {
             name: c.name.clone(),
             center_m: mm3(c.center_mm),
@@ -273,6 +280,7 @@ fn build_coils(
             winding,
             resistance_ohm: c.resistance_ohm,
             max_current_a: c.max_current_a,
+            saturation,
         });
     }
     Ok(coils)

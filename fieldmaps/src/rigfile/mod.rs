@@ -145,6 +145,8 @@ pub struct RigCoil {
     pub winding: Option<Winding>,
     pub resistance_ohm: f64,
     pub max_current_a: f64,
+    /// Effective gain against current (`saturation`), if the coil saturates.
+    pub saturation: Option<crate::rig::SaturationCurve>,
 }
 
 /// Pixel layout of the camera's frames (mirrors `shm_schemas::PixelFormat`).
@@ -318,6 +320,25 @@ impl Rig {
             max_current_a: min_current,
             max_total_power_w: self.max_total_power_w,
             coil_resistance_ohm: max_resistance,
+        }
+    }
+
+    /// Each of the coils `ids`' own current limit and resistance (in that order), with the
+    /// total power budget: what the allocation respects.
+    pub fn coil_ratings(&self, ids: &[usize]) -> crate::allocation::CoilRatings {
+        let coil = |&id: &usize| self.coils.get(id);
+        crate::allocation::CoilRatings {
+            max_current_a: nalgebra::DVector::from_iterator(
+                ids.len(),
+                ids.iter()
+                    .map(|id| coil(id).map_or(0.0, |c| c.max_current_a)),
+            ),
+            resistance_ohm: nalgebra::DVector::from_iterator(
+                ids.len(),
+                ids.iter()
+                    .map(|id| coil(id).map_or(f64::INFINITY, |c| c.resistance_ohm)),
+            ),
+            max_total_power_w: self.max_total_power_w,
         }
     }
 

@@ -44,6 +44,9 @@ pub(crate) struct CoilSection {
     pub winding: Option<WindingSection>,
     pub resistance_ohm: f64,
     pub max_current_a: f64,
+    /// [[current_a, gain], …]: effective gain against current; absent = linear coil.
+    #[serde(default)]
+    pub saturation: Option<Vec<[f64; 2]>>,
 }
 
 #[derive(Debug, Deserialize)]

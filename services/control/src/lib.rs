@@ -12,11 +12,12 @@ use std::time::{Duration, Instant};
 use std::sync::Arc;
 
 use fieldmaps::allocation::{
-    actuation_matrix_from, allocate_constrained, allocate_limited, ConstrainedSettings,
+    actuation_matrix_from, allocate_constrained_rated, allocate_limited_rated, clamp_to_ratings,
+    CoilRatings, ConstrainedSettings,
 };
 use fieldmaps::coils::CoilField;
 use fieldmaps::physics;
-use fieldmaps::rig::{CoilLimits, RobotParams};
+use fieldmaps::rig::{CoilLimits, RobotParams, SaturationCurve};
 use fieldmaps::rigfile::Rig;
 use millinav_kit::contract::ContractViolations;
 use millinav_kit::ports::{Inbox, Outbox};
@@ -62,8 +63,8 @@ pub struct ControlConfig {
     pub max_speed_mps: f64,
     /// Time constant of the velocity estimate's low-pass filter.
     pub velocity_filter_ms: f64,
-    /// Current and power limits the allocation respects; default: the rig's
-    /// (`Rig::coil_limits`, conservative when the coils' ratings differ).
+    /// Current and power limits the allocation respects, one rating for every coil; default:
+    /// each coil's own from the rig file (`Rig::coil_ratings`).
     pub limits: Option<CoilLimits>,
     /// Allocate with the constrained QP (per-coil and total limits, best effort when the
     /// command is infeasible) instead of the paper's pseudo-inverse followed by scaling.
@@ -172,7 +173,12 @@ pub struct ControlLoop {
     /// The rig: coil model (control's, never the twin's), canal mask, robot.
     rig: Arc<Rig>,
     coil_ids: Vec<usize>,
-    limits: CoilLimits,
+    /// Each allocated coil's limit and resistance: the rig's own, or `[control.limits]` for all.
+    ratings: CoilRatings,
+    /// The same in the field model's effective currents (differs for saturating coils).
+    effective_ratings: CoilRatings,
+    /// Each allocated coil's saturation curve (rig file), `None` when linear.
+    saturation: Vec<Option<SaturationCurve>>,
     robot: RobotParams,
     incarnation: u64,
     last_good: Option<(u64, Vector2<f64>)>,
@@ -207,7 +213,15 @@ impl ControlLoop {
         };
         let mpc = config.mpc_gains(&rig, reference.waypoints());
         let coil_ids = config.coil_ids(&rig);
-        let limits = config.limits_on(&rig);
+        let ratings = match &config.limits {
+            Some(limits) => CoilRatings::uniform(limits, coil_ids.len()),
+            None => rig.coil_ratings(&coil_ids),
+        };
+        let saturation: Vec<Option<SaturationCurve>> = coil_ids
+            .iter()
+            .map(|&id| rig.coils.get(id).and_then(|c| c.saturation.clone()))
+            .collect();
+        let effective_ratings = ratings.effective(&saturation);
         let controller = config
             .controller
             .build(&config.pid, &config.smc, &mpc, model);
@@ -222,7 +236,9 @@ impl ControlLoop {
             reference,
             controller,
             coil_ids,
-            limits,
+            ratings,
+            effective_ratings,
+            saturation,
             rig,
             robot,
             incarnation,
@@ -324,12 +340,21 @@ impl ControlLoop {
                 row_weights: Some(DVector::from_vec(vec![1.0, 1.0, w, w])),
                 ..ConstrainedSettings::default()
             };
-            allocate_constrained(&a, &c, &self.limits, &settings).map(|a| a.currents_a)
+            allocate_constrained_rated(&a, &c, &self.effective_ratings, &settings)
+                .map(|a| a.currents_a)
         } else {
-            allocate_limited(&a, &c, &self.limits).map(|a| a.currents_a)
+            allocate_limited_rated(&a, &c, &self.effective_ratings).map(|a| a.currents_a)
         };
         let mut achieved = Vector2::zeros();
-        if let Ok(mut allocated) = allocated {
+        if let Ok(effective) = allocated {
+            // The allocation speaks the model's effective currents; a saturating coil needs more.
+            let mut allocated = DVector::from_iterator(
+                effective.len(),
+                effective
+                    .iter()
+                    .zip(&self.saturation)
+                    .map(|(&i, curve)| curve.as_ref().map_or(i, |c| c.actual_for(i))),
+            );
             if let Some((previous, max_step_a)) = slew {
                 let previous = DVector::from_iterator(
                     coil_ids.len(),
@@ -343,7 +368,16 @@ impl ControlLoop {
                     allocated = previous + step * (max_step_a / largest);
                 }
             }
-            let wrench = &a * &allocated;
+            // Guard: the real currents within the real ratings whatever the curve did.
+            clamp_to_ratings(&mut allocated, &self.ratings);
+            let effective = DVector::from_iterator(
+                allocated.len(),
+                allocated
+                    .iter()
+                    .zip(&self.saturation)
+                    .map(|(&i, curve)| curve.as_ref().map_or(i, |c| c.effective(i))),
+            );
+            let wrench = &a * &effective;
             achieved = Vector2::new(wrench[0], wrench[1]);
             for (k, &id) in coil_ids.iter().enumerate() {
                 if let Some(current) = currents.get_mut(id) {
@@ -1010,6 +1044,34 @@ mod tests {
         assert!(previous.iter().any(|i| i.abs() > 0.5), "{previous:?}");
         let d = c.safe(&pose(20, 0.2, -0.0175, 0.0118), "flow estimates lost");
         assert!(d.command.currents_a.iter().all(|i| *i == 0.0));
+    }
+
+    #[test]
+    fn saturating_coils_get_the_current_that_makes_the_asked_force() {
+        let reference = Reference::new(&[[-0.018, 0.012], [-0.012, 0.008]], 1e-3, 0.0).unwrap();
+        let mut rig = Rig::load_paper().unwrap();
+        let curve = SaturationCurve::new(&[[1.0, 1.0], [6.0, 0.7]]).unwrap();
+        for coil in &mut rig.coils {
+            coil.saturation = Some(curve.clone());
+        }
+        let rig = Arc::new(rig);
+        let c = ControlLoop::new(ControlConfig::default(), reference, 0.02, 0, rig.clone());
+        let linear = control_loop();
+        let position = Vector2::new(-0.01, 0.005);
+        let force = Vector2::new(4e-5, -2e-5);
+        let (currents, achieved) = c.allocate(&position, 0.7, &force, None);
+        let (linear_currents, _) = linear.allocate(&position, 0.7, &force, None);
+        assert!(
+            (achieved - force).norm() < 1e-3 * force.norm(),
+            "{achieved}"
+        );
+        // The field those real currents make through the curve is the linear allocation's.
+        let effective: Vec<f64> = currents.iter().map(|&i| curve.effective(i)).collect();
+        for (e, l) in effective.iter().zip(&linear_currents) {
+            assert!((e - l).abs() < 1e-6, "{effective:?} vs {linear_currents:?}");
+        }
+        let strongest = |v: &[f64]| v.iter().map(|i| i.abs()).fold(0.0, f64::max);
+        assert!(strongest(&currents) > strongest(&linear_currents) * 1.01);
     }
 
     #[test]

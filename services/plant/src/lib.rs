@@ -121,7 +121,7 @@ fn load_model(
     let steady_flow = flow
         .load(scenario)
         .config_context(format!("scenario {}: [flow] map", scenario.path.display()))?;
-    Ok(PlantModel::new(
+    let mut model = PlantModel::new(
         rig.twin_coil_field.clone(),
         rig.robot,
         &fluid,
@@ -129,7 +129,9 @@ fn load_model(
         steady_flow,
         config.physics.clone(),
         scenario.run.seed,
-    ))
+    );
+    model.saturation = rig.coils.iter().map(|c| c.saturation.clone()).collect();
+    Ok(model)
 }
 
 /// What the `[plant]` table configures, validated, with the model built from the files it

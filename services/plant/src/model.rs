@@ -20,7 +20,7 @@
 use fieldmaps::coils::CoilField;
 use fieldmaps::flowmap::FlowMap;
 use fieldmaps::physics;
-use fieldmaps::rig::{FluidParams, RobotParams};
+use fieldmaps::rig::{FluidParams, RobotParams, SaturationCurve};
 use fieldmaps::rigfile::{RigPhantom, MAX_RIG_COILS};
 use fieldmaps::walls::WallField;
 use nalgebra::{Vector2, Vector3};
@@ -118,6 +118,8 @@ pub struct PlantModel {
     pub config: PlantPhysicsConfig,
     /// True gain of each coil relative to its nominal map.
     pub coil_gains: [f64; MAX_RIG_COILS],
+    /// Each coil's saturation (the rig file's `saturation`), applied after the gain.
+    pub saturation: Vec<Option<SaturationCurve>>,
     /// Recirculation vortex and noise modes of the true flow.
     pub disturbance: FlowDisturbance,
     seed: u64,
@@ -173,6 +175,7 @@ impl PlantModel {
             steady_flow,
             config,
             coil_gains,
+            saturation: Vec::new(),
             disturbance,
             seed,
             linear_drag_n_s_per_m: linear,
@@ -289,7 +292,11 @@ impl PlantModel {
         let true_currents: Vec<f64> = state.coil_currents_a[..n]
             .iter()
             .zip(&self.coil_gains)
-            .map(|(c, g)| c * g)
+            .enumerate()
+            .map(|(k, (c, g))| match self.saturation.get(k) {
+                Some(Some(curve)) => curve.effective(c * g),
+                _ => c * g,
+            })
             .collect();
         let p3 = Vector3::new(state.position_m.x, state.position_m.y, 0.0);
         let (field, gradient) = self.coils.field_and_gradient(&true_currents, &p3);
