@@ -55,6 +55,11 @@ struct Args {
     /// `[plant.camera] latency_frames`: a whole number of frame periods, e.g. 100 at 10 Hz.
     #[arg(long)]
     camera_latency_ms: Option<f64>,
+    /// Standard deviation of the twin's per-coil gain error that control does not know
+    /// (`[plant.physics] coil_gain_error_std`, a fraction: 0.1 for 10 %) instead of the base
+    /// scenario's.
+    #[arg(long)]
+    coil_gain_error: Option<f64>,
     /// Feed the controllers the delayed pose as measured (`[control.latency] compensate =
     /// false`) instead of the state predicted for the actuation time.
     #[arg(long)]
@@ -116,8 +121,8 @@ fn main() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The base scenario, with `--frame-period-ms`, `--camera-latency-ms` and
-/// `--no-latency-compensation` applied.
+/// The base scenario, with `--frame-period-ms`, `--camera-latency-ms`, `--coil-gain-error`
+/// and `--no-latency-compensation` applied.
 fn load_base(args: &Args) -> anyhow::Result<Scenario> {
     let mut base = Scenario::load(&args.base)
         .with_context(|| format!("base scenario {}", args.base.display()))?;
@@ -143,6 +148,17 @@ fn load_base(args: &Args) -> anyhow::Result<Scenario> {
             &mut base.sections,
             &["plant", "camera", "latency_frames"],
             toml::Value::Integer(frames.round() as i64),
+        )?;
+    }
+    if let Some(std) = args.coil_gain_error {
+        anyhow::ensure!(
+            std.is_finite() && (0.0..0.5).contains(&std),
+            "--coil-gain-error must be within 0..0.5 (a fraction), got {std}"
+        );
+        set_in_table(
+            &mut base.sections,
+            &["plant", "physics", "coil_gain_error_std"],
+            toml::Value::Float(std),
         )?;
     }
     if args.no_latency_compensation {
@@ -174,14 +190,18 @@ fn latency_note(base: &Scenario) -> String {
     let compensated = get(&["control", "latency", "compensate"])
         .and_then(toml::Value::as_bool)
         .unwrap_or(true);
+    let gain_error = get(&["plant", "physics", "coil_gain_error_std"])
+        .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+        .unwrap_or(millinav_plant::model::PlantPhysicsConfig::default().coil_gain_error_std);
     format!(
-        "{} ms extra camera latency ({})",
+        "{} ms extra camera latency ({}), per-coil gain error σ {:.0} % unknown to control",
         frames as f64 * base.run.frame_period_ms,
         if compensated {
             "compensated"
         } else {
             "not compensated"
-        }
+        },
+        gain_error * 100.0
     )
 }
 

@@ -135,6 +135,7 @@ fn recovers_gains_and_background_and_the_rig_loads_it() {
         cal_path.as_os_str(),
     ]);
     assert!(ok, "{text}");
+    eprintln!("{text}");
     // Rows 17, 150, 333 sit on lines 19, 152, 335 (line 1 is the header).
     for line in [19, 152, 335] {
         assert!(text.contains(&format!("line {line}: residual")), "{text}");
