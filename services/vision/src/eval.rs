@@ -191,3 +191,81 @@ pub fn table(reports: &[Report]) -> String {
     }
     out
 }
+
+/// One localizer on one shift of the split.
+#[derive(Debug, Clone)]
+pub struct RobustnessRow {
+    /// Family name, or "none" for the unshifted split.
+    pub family: &'static str,
+    pub severity: u32,
+    pub description: String,
+    pub report: Report,
+}
+
+/// Every localizer on the split as it is and under every family of
+/// [`crate::perturb::Family`] at severities 1..=3. `localizers` evaluates a split with each
+/// localizer (so the caller decides which run, e.g. without a UNet runtime); `progress` is told
+/// each finished shift.
+pub fn robustness(
+    split: &Split,
+    seed: u64,
+    mut localizers: impl FnMut(&Split) -> Vec<Report>,
+    mut progress: impl FnMut(&str, u32),
+) -> opencv::Result<Vec<RobustnessRow>> {
+    use crate::perturb::{perturb_split, Family};
+    let mut rows = Vec::new();
+    for report in localizers(split) {
+        rows.push(RobustnessRow {
+            family: "none",
+            severity: 0,
+            description: "the split as rendered".into(),
+            report,
+        });
+    }
+    progress("none", 0);
+    for family in Family::ALL {
+        for severity in 1..=3 {
+            let shifted = perturb_split(split, family, severity, seed)?;
+            for report in localizers(&shifted) {
+                rows.push(RobustnessRow {
+                    family: family.name(),
+                    severity,
+                    description: family.describe(severity),
+                    report,
+                });
+            }
+            progress(family.name(), severity);
+        }
+    }
+    Ok(rows)
+}
+
+/// A Markdown table of the robustness suite (latency left out: it does not depend on the shift).
+pub fn robustness_table(rows: &[RobustnessRow]) -> String {
+    let mut out = String::from(
+        "| shift | severity | localizer | precision | recall | IoU | detected | false det. | centroid err mm (median / p95) | tip err mm (median / p95) |\n|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for row in rows {
+        let r = &row.report;
+        out.push_str(&format!(
+            "| {} | {} | {} | {:.2} % | {:.2} % | {:.2} % | {:.1} % | {:.1} % | {:.3} / {:.3} | {:.3} / {:.3} |\n",
+            row.family,
+            if row.severity == 0 {
+                "–".to_string()
+            } else {
+                format!("{} ({})", row.severity, row.description)
+            },
+            r.name,
+            100.0 * r.precision,
+            100.0 * r.recall,
+            100.0 * r.iou,
+            100.0 * r.detection_rate,
+            100.0 * r.false_detection_rate,
+            r.centroid_err_mm_median,
+            r.centroid_err_mm_p95,
+            r.tip_err_mm_median,
+            r.tip_err_mm_p95,
+        ));
+    }
+    out
+}

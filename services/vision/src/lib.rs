@@ -5,6 +5,7 @@
 pub mod classical;
 pub mod eval;
 pub mod ort_version;
+pub mod perturb;
 pub mod unet;
 
 use fieldmaps::rigfile::Rig;
