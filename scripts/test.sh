@@ -16,5 +16,7 @@ fi
 cargo machete
 cargo clippy --release --workspace --all-targets --locked -- -D warnings
 cargo test --release --workspace --locked
+# The serial protocol without std, for the board (rustup target installed on demand).
+./scripts/no_std.sh
 # The serial decoder under libFuzzer for a bounded time (nightly + cargo-fuzz, installed on demand).
 ./scripts/fuzz.sh "${MILLINAV_FUZZ_SECONDS:-60}"

@@ -89,7 +89,7 @@ proptest! {
         let mut stream = lead;
         let mut expected = Vec::new();
         for (p, garbage) in &items {
-            stream.extend(encode(p));
+            stream.extend_from_slice(&encode(p));
             stream.extend(garbage);
             expected.push(p.clone());
         }
@@ -108,12 +108,12 @@ proptest! {
         bit in 0usize..8,
         at in any::<prop::sample::Index>(),
     ) {
-        let mut corrupted = encode(&bad);
+        let mut corrupted = encode(&bad).to_vec();
         // Any byte after the sync word: version, kind, length, seq, payload or CRC.
         let i = SYNC.len() + at.index(corrupted.len() - SYNC.len());
         corrupted[i] ^= 1 << bit;
         let mut stream = corrupted.clone();
-        stream.extend(encode(&good));
+        stream.extend_from_slice(&encode(&good));
         // A corrupted length may make the decoder wait for more bytes: pad with zeros.
         stream.extend([0u8; 2 * MAX_FRAME]);
         let mut decoder = Decoder::new();

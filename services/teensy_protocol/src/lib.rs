@@ -22,6 +22,11 @@
 //! The decoder resynchronises on the sync word after any corruption and counts what it dropped;
 //! it never panics on arbitrary input. The full description (tables, CRC parameters, coil-count
 //! check, watchdog semantics) is in `services/teensy_protocol/PROTOCOL.md`.
+//!
+//! Without its default `std` feature the crate is `no_std` and allocation-free (fixed buffers:
+//! [`Frame`], the decoder's own), so the board firmware links the same code as the host; `std`
+//! only adds the `Vec`-returning conveniences ([`Decoder::push`], [`check_decoder_invariants`]).
+#![cfg_attr(not(feature = "std"), no_std)]
 
 use crc::{Crc, CRC_16_IBM_3740};
 
@@ -153,35 +158,85 @@ pub fn amps_to_ma(current_a: f64) -> i32 {
     if current_a.is_nan() {
         return 0;
     }
-    (current_a * 1000.0)
-        .round()
-        .clamp(i32::MIN as f64, i32::MAX as f64) as i32
+    // Half away from zero by hand (`f64::round` needs std); `as` saturates at the i32 range.
+    let ma = current_a * 1000.0;
+    (if ma >= 0.0 { ma + 0.5 } else { ma - 0.5 }) as i32
 }
 
 pub fn ma_to_amps(current_ma: i32) -> f64 {
     current_ma as f64 / 1000.0
 }
 
-/// Encodes one packet into a fresh buffer.
-pub fn encode(packet: &Packet) -> Vec<u8> {
-    let mut payload = Vec::with_capacity(MAX_PAYLOAD);
+/// One encoded frame: at most [`MAX_FRAME`] bytes in a fixed buffer (no allocation).
+#[derive(Clone, Copy)]
+pub struct Frame {
+    bytes: [u8; MAX_FRAME],
+    len: usize,
+}
+
+impl Frame {
+    fn new() -> Self {
+        Self {
+            bytes: [0; MAX_FRAME],
+            len: 0,
+        }
+    }
+
+    /// Appends `data`; the encoder never writes more than [`MAX_FRAME`] bytes.
+    fn put(&mut self, data: &[u8]) {
+        let end = (self.len + data.len()).min(MAX_FRAME);
+        let n = end - self.len;
+        self.bytes[self.len..end].copy_from_slice(&data[..n]);
+        self.len = end;
+    }
+
+    pub fn as_slice(&self) -> &[u8] {
+        &self.bytes[..self.len]
+    }
+}
+
+impl core::ops::Deref for Frame {
+    type Target = [u8];
+
+    fn deref(&self) -> &[u8] {
+        self.as_slice()
+    }
+}
+
+impl AsRef<[u8]> for Frame {
+    fn as_ref(&self) -> &[u8] {
+        self.as_slice()
+    }
+}
+
+impl core::fmt::Debug for Frame {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_list().entries(self.as_slice()).finish()
+    }
+}
+
+/// Encodes one packet.
+pub fn encode(packet: &Packet) -> Frame {
+    let mut out = Frame::new();
+    out.put(&SYNC);
+    out.put(&[PROTOCOL_VERSION, 0, 0, 0]); // version, kind and length filled in below
+    out.put(&packet.seq.to_le_bytes());
     let kind = match &packet.message {
         Message::SetCurrents {
             frame_seq,
             flags,
             currents_ma,
         } => {
-            payload.extend_from_slice(&frame_seq.to_le_bytes());
-            payload.push(*flags);
-            payload.push(currents_ma.count);
+            out.put(&frame_seq.to_le_bytes());
+            out.put(&[*flags, currents_ma.count]);
             for c in currents_ma.as_slice() {
-                payload.extend_from_slice(&c.to_le_bytes());
+                out.put(&c.to_le_bytes());
             }
             MessageKind::SetCurrents
         }
         Message::Ack { acked_seq, status } => {
-            payload.extend_from_slice(&acked_seq.to_le_bytes());
-            payload.push(*status);
+            out.put(&acked_seq.to_le_bytes());
+            out.put(&[*status]);
             MessageKind::Ack
         }
         Message::Telemetry {
@@ -190,25 +245,21 @@ pub fn encode(packet: &Packet) -> Vec<u8> {
             rx_errors,
             frames_received,
         } => {
-            payload.push(applied_ma.count);
+            out.put(&[applied_ma.count]);
             for c in applied_ma.as_slice() {
-                payload.extend_from_slice(&c.to_le_bytes());
+                out.put(&c.to_le_bytes());
             }
-            payload.push(u8::from(*watchdog_tripped));
-            payload.extend_from_slice(&rx_errors.to_le_bytes());
-            payload.extend_from_slice(&frames_received.to_le_bytes());
+            out.put(&[u8::from(*watchdog_tripped)]);
+            out.put(&rx_errors.to_le_bytes());
+            out.put(&frames_received.to_le_bytes());
             MessageKind::Telemetry
         }
     };
-    let mut out = Vec::with_capacity(HEADER_LEN + payload.len() + CRC_LEN);
-    out.extend_from_slice(&SYNC);
-    out.push(PROTOCOL_VERSION);
-    out.push(kind as u8);
-    out.extend_from_slice(&(payload.len() as u16).to_le_bytes());
-    out.extend_from_slice(&packet.seq.to_le_bytes());
-    out.extend_from_slice(&payload);
-    let crc = CRC16.checksum(&out[2..]);
-    out.extend_from_slice(&crc.to_le_bytes());
+    let payload_len = (out.len - HEADER_LEN) as u16;
+    out.bytes[3] = kind as u8;
+    out.bytes[4..6].copy_from_slice(&payload_len.to_le_bytes());
+    let crc = CRC16.checksum(&out.bytes[2..out.len]);
+    out.put(&crc.to_le_bytes());
     out
 }
 
@@ -232,11 +283,27 @@ impl DecodeCounters {
     }
 }
 
-/// Streaming decoder: feed it whatever the port returned, take out whole packets.
-#[derive(Debug, Default)]
+/// Bytes the decoder holds: a partial frame (< [`MAX_FRAME`]) plus one more frame's worth of
+/// new input per parsing pass.
+const DECODER_CAPACITY: usize = 2 * MAX_FRAME;
+
+/// Streaming decoder: feed it whatever the port returned, take out whole packets. Fixed memory:
+/// it never holds more than a partial frame between calls.
+#[derive(Debug)]
 pub struct Decoder {
-    buffer: Vec<u8>,
+    buffer: [u8; DECODER_CAPACITY],
+    len: usize,
     pub counters: DecodeCounters,
+}
+
+impl Default for Decoder {
+    fn default() -> Self {
+        Self {
+            buffer: [0; DECODER_CAPACITY],
+            len: 0,
+            counters: DecodeCounters::default(),
+        }
+    }
 }
 
 impl Decoder {
@@ -244,20 +311,43 @@ impl Decoder {
         Self::default()
     }
 
+    /// Bytes held back as the start of a frame not yet complete (always < [`MAX_FRAME`]).
+    pub fn pending(&self) -> usize {
+        self.len
+    }
+
     /// Appends bytes and returns every complete, valid packet now available.
+    #[cfg(feature = "std")]
     pub fn push(&mut self, bytes: &[u8]) -> Vec<Packet> {
-        self.buffer.extend_from_slice(bytes);
         let mut packets = Vec::new();
+        self.push_with(bytes, |p| packets.push(p));
+        packets
+    }
+
+    /// Appends bytes and hands every complete, valid packet now available to `on_packet`, in
+    /// order (the allocation-free form of [`Self::push`]).
+    pub fn push_with(&mut self, mut bytes: &[u8], mut on_packet: impl FnMut(Packet)) {
+        while !bytes.is_empty() {
+            let n = bytes.len().min(DECODER_CAPACITY - self.len);
+            self.buffer[self.len..self.len + n].copy_from_slice(&bytes[..n]);
+            self.len += n;
+            bytes = &bytes[n..];
+            self.parse(&mut on_packet);
+        }
+    }
+
+    /// Takes every whole frame out of the buffer; what stays is a partial frame (< MAX_FRAME).
+    fn parse(&mut self, on_packet: &mut impl FnMut(Packet)) {
         let mut start = 0usize;
         loop {
+            let held = &self.buffer[..self.len];
             // Hunt for the sync word.
-            let Some(offset) = find_sync(&self.buffer[start..]) else {
+            let Some(offset) = find_sync(&held[start..]) else {
                 // Keep a trailing 0xA5: it may be the first half of a sync word.
-                let keep_from = if self.buffer.len() > start && self.buffer.last() == Some(&SYNC[0])
-                {
-                    self.buffer.len() - 1
+                let keep_from = if held.len() > start && held.last() == Some(&SYNC[0]) {
+                    held.len() - 1
                 } else {
-                    self.buffer.len()
+                    held.len()
                 };
                 self.counters.skipped_bytes += (keep_from - start) as u64;
                 start = keep_from;
@@ -265,7 +355,7 @@ impl Decoder {
             };
             self.counters.skipped_bytes += offset as u64;
             start += offset;
-            let available = &self.buffer[start..];
+            let available = &held[start..];
             if available.len() < HEADER_LEN {
                 break;
             }
@@ -300,27 +390,24 @@ impl Decoder {
                 Some(kind) => match parse_payload(kind, payload) {
                     Some(message) => {
                         self.counters.packets += 1;
-                        packets.push(Packet { seq, message });
+                        on_packet(Packet { seq, message });
                     }
                     None => self.counters.bad_payload += 1,
                 },
             }
             start += total;
         }
-        self.buffer.drain(..start);
-        // A peer that sends only garbage must not grow the buffer without bound.
-        if self.buffer.len() > 4 * MAX_FRAME {
-            self.counters.skipped_bytes += self.buffer.len() as u64;
-            self.buffer.clear();
-        }
-        packets
+        self.buffer.copy_within(start..self.len, 0);
+        self.len -= start;
     }
 }
 
 /// Feeds `data` to a fresh decoder in chunks whose sizes come from the data itself, then checks
 /// the decoder's invariants: every returned packet re-encodes to a frame present in the input,
-/// the packet counter matches, and the internal buffer stays bounded. Used by the cargo-fuzz
-/// target (`fuzz/fuzz_targets/decoder.rs`) and by the property tests; panics on a violation.
+/// the packet counter matches, and the held-back bytes stay below one frame. Used by the
+/// cargo-fuzz target (`fuzz/fuzz_targets/decoder.rs`) and by the property tests; panics on a
+/// violation.
+#[cfg(feature = "std")]
 pub fn check_decoder_invariants(data: &[u8]) {
     let mut decoder = Decoder::new();
     let mut packets = Vec::new();
@@ -330,9 +417,9 @@ pub fn check_decoder_invariants(data: &[u8]) {
         let n = chunk.min(rest.len());
         packets.extend(decoder.push(&rest[..n]));
         assert!(
-            decoder.buffer.len() <= MAX_FRAME,
-            "decoder buffer grew to {}",
-            decoder.buffer.len()
+            decoder.pending() < MAX_FRAME,
+            "decoder holds {} bytes",
+            decoder.pending()
         );
         chunk = 1 + (rest[0] as usize % 97);
         rest = &rest[n..];
@@ -458,7 +545,7 @@ mod tests {
         let packets = sample_packets();
         let mut stream = vec![0x00, 0xA5, 0x13, 0xFF];
         for p in &packets {
-            stream.extend(encode(p));
+            stream.extend_from_slice(&encode(p));
             stream.extend([0xA5, 0xA5, 0x01]);
         }
         let mut decoder = Decoder::new();
@@ -473,10 +560,10 @@ mod tests {
     #[test]
     fn corrupted_frame_is_rejected_and_next_one_survives() {
         let packets = sample_packets();
-        let mut bad = encode(&packets[0]);
+        let mut bad = encode(&packets[0]).to_vec();
         bad[12] ^= 0x40;
         let mut stream = bad;
-        stream.extend(encode(&packets[1]));
+        stream.extend_from_slice(&encode(&packets[1]));
         let mut decoder = Decoder::new();
         assert_eq!(decoder.push(&stream), vec![packets[1].clone()]);
         assert_eq!(decoder.counters.crc_errors, 1);
@@ -575,7 +662,7 @@ mod tests {
 
     #[test]
     fn a_frame_of_another_protocol_version_is_dropped_and_counted() {
-        let good = encode(&sample_packets()[1]);
+        let good = encode(&sample_packets()[1]).to_vec();
         let mut old = good.clone();
         old[2] = 1;
         let crc = CRC16.checksum(&old[2..old.len() - 2]);
