@@ -41,8 +41,8 @@ pub const MAX_COILS: usize = 16;
 pub const SYNC: [u8; 2] = [0xA5, 0x5A];
 pub const HEADER_LEN: usize = 2 + 1 + 1 + 2 + 4;
 pub const CRC_LEN: usize = 2;
-/// Longest payload: a `SetCurrents` or `Telemetry` for `MAX_COILS` coils.
-pub const MAX_PAYLOAD: usize = 8 + 1 + 1 + 4 * MAX_COILS;
+/// Longest payload: a `Config` for `MAX_COILS` coils.
+pub const MAX_PAYLOAD: usize = CONFIG_FIXED + CONFIG_PER_COIL * MAX_COILS;
 /// Longest frame on the wire.
 pub const MAX_FRAME: usize = HEADER_LEN + MAX_PAYLOAD + CRC_LEN;
 /// CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF), known in the crc crate as IBM-3740.
@@ -51,6 +51,15 @@ const CRC16: Crc<u16> = Crc::<u16>::new(&CRC_16_IBM_3740);
 const SET_CURRENTS_FIXED: usize = 8 + 1 + 1;
 const ACK_LEN: usize = 4 + 1;
 const TELEMETRY_FIXED: usize = 1 + 1 + 4 + 4;
+const CONFIG_FIXED: usize = 1 + 4 + 2;
+const CONFIG_PER_COIL: usize = 4 * 4;
+const STATUS_FIXED: usize = 1 + 1 + 1 + 4 + 4;
+const STATUS_PER_COIL: usize = 4 + 4 + 4 + 2;
+
+/// The payload of `Arm`: arming is a deliberate act, not a byte a glitch can forge.
+pub const ARM_KEY: [u8; 4] = *b"ARM!";
+/// `Status.measured_ma` of a channel without a current sense input.
+pub const NOT_MEASURED: i32 = i32::MIN;
 
 /// Flag bit in `SetCurrents`: this is a safe-state zero, not a controller command.
 pub const FLAG_SAFE_ZERO: u8 = 1;
@@ -103,6 +112,11 @@ pub enum MessageKind {
     SetCurrents = 0x01,
     Ack = 0x02,
     Telemetry = 0x03,
+    Arm = 0x04,
+    Disarm = 0x05,
+    EStop = 0x06,
+    Config = 0x07,
+    Status = 0x08,
 }
 
 impl MessageKind {
@@ -111,10 +125,151 @@ impl MessageKind {
             0x01 => Some(Self::SetCurrents),
             0x02 => Some(Self::Ack),
             0x03 => Some(Self::Telemetry),
+            0x04 => Some(Self::Arm),
+            0x05 => Some(Self::Disarm),
+            0x06 => Some(Self::EStop),
+            0x07 => Some(Self::Config),
+            0x08 => Some(Self::Status),
             _ => None,
         }
     }
 }
+
+/// One coil's electrical and thermal rating, as the host sends it in `Config`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CoilRating {
+    pub resistance_mohm: u32,
+    /// Current magnitude limit, mA.
+    pub max_ma: u32,
+    /// Current the coil carries indefinitely, mA (the I²t budget fills above it).
+    pub continuous_ma: u32,
+    /// Heat budget above the continuous current, ∫(I² − I_c²) dt, in mA²·s / 1000 (= A²·s × 1000).
+    pub i2t_budget: u32,
+}
+
+/// `Config` payload: supply voltage, watchdog and every channel's rating.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BoardConfig {
+    pub supply_mv: u32,
+    pub watchdog_ms: u16,
+    coils: [CoilRating; MAX_COILS],
+    count: u8,
+}
+
+impl BoardConfig {
+    /// `None` when there are more than `MAX_COILS` ratings.
+    pub fn new(supply_mv: u32, watchdog_ms: u16, coils: &[CoilRating]) -> Option<Self> {
+        if coils.len() > MAX_COILS {
+            return None;
+        }
+        let mut all = [CoilRating::default(); MAX_COILS];
+        all[..coils.len()].copy_from_slice(coils);
+        Some(Self {
+            supply_mv,
+            watchdog_ms,
+            coils: all,
+            count: coils.len() as u8,
+        })
+    }
+
+    pub fn coils(&self) -> &[CoilRating] {
+        &self.coils[..usize::from(self.count)]
+    }
+}
+
+/// One channel in `Status`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ChannelStatus {
+    /// What the host last asked, mA.
+    pub commanded_ma: i32,
+    /// What the board drives after clamps, derating and state, mA.
+    pub applied_ma: i32,
+    /// The sense input's reading, mA, or [`NOT_MEASURED`].
+    pub measured_ma: i32,
+    /// Heat budget used, ‰ (1000 = tripped).
+    pub thermal_permille: u16,
+}
+
+/// `Status` payload: the board's safety state and every channel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BoardStatus {
+    /// `BoardState` as a byte.
+    pub state: u8,
+    /// `STATUS_*` bits.
+    pub flags: u8,
+    channels: [ChannelStatus; MAX_COILS],
+    count: u8,
+    pub rx_errors: u32,
+    pub frames_received: u32,
+}
+
+impl BoardStatus {
+    pub fn new(
+        state: u8,
+        flags: u8,
+        channels: &[ChannelStatus],
+        rx_errors: u32,
+        frames_received: u32,
+    ) -> Option<Self> {
+        if channels.len() > MAX_COILS {
+            return None;
+        }
+        let mut all = [ChannelStatus::default(); MAX_COILS];
+        all[..channels.len()].copy_from_slice(channels);
+        Some(Self {
+            state,
+            flags,
+            channels: all,
+            count: channels.len() as u8,
+            rx_errors,
+            frames_received,
+        })
+    }
+
+    pub fn channels(&self) -> &[ChannelStatus] {
+        &self.channels[..usize::from(self.count)]
+    }
+}
+
+/// `BoardStatus.state`: the board's safety state.
+#[repr(u8)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BoardState {
+    /// No valid `Config` yet: outputs off, `SetCurrents` refused.
+    Unconfigured = 0,
+    /// Configured, outputs off; `Arm` (with [`ARM_KEY`]) arms.
+    Disarmed = 1,
+    /// Outputs follow `SetCurrents`.
+    Armed = 2,
+    /// Latched: outputs off until a deliberate re-arm (or a reset), whatever else arrives.
+    EStop = 3,
+    /// A coil spent its I²t budget: outputs off until it cooled and the host re-arms.
+    ThermalTrip = 4,
+}
+
+impl BoardState {
+    pub fn from_u8(value: u8) -> Option<Self> {
+        match value {
+            0 => Some(Self::Unconfigured),
+            1 => Some(Self::Disarmed),
+            2 => Some(Self::Armed),
+            3 => Some(Self::EStop),
+            4 => Some(Self::ThermalTrip),
+            _ => None,
+        }
+    }
+}
+
+/// `BoardStatus.flags`: the watchdog has zeroed the outputs.
+pub const STATUS_WATCHDOG: u8 = 1;
+/// At least one channel was clamped to its limit.
+pub const STATUS_CLAMPED: u8 = 1 << 1;
+/// At least one channel is derated by its heat budget.
+pub const STATUS_DERATING: u8 = 1 << 2;
+/// The emergency-stop input is active now.
+pub const STATUS_ESTOP_INPUT: u8 = 1 << 3;
+/// The last `Config` was refused (see the board's limits).
+pub const STATUS_CONFIG_REFUSED: u8 = 1 << 4;
 
 #[repr(u8)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -125,6 +280,9 @@ pub enum AckStatus {
     /// The frame's coil count is not the board's: nothing was applied (outputs unchanged,
     /// and the frame does not feed the watchdog).
     RejectedCoilCount = 2,
+    /// The board is not armed (unconfigured, disarmed, e-stopped or thermally tripped):
+    /// nothing applied, outputs stay off.
+    NotArmed = 3,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -144,6 +302,16 @@ pub enum Message {
         rx_errors: u32,
         frames_received: u32,
     },
+    /// Host → board: arm (payload [`ARM_KEY`]); also the deliberate re-arm after an e-stop.
+    Arm,
+    /// Host → board: outputs off, stay configured.
+    Disarm,
+    /// Host → board: latched emergency stop.
+    EStop,
+    /// Host → board: supply, watchdog and channel ratings (the board checks them).
+    Config(BoardConfig),
+    /// Board → host: state, flags and every channel.
+    Status(BoardStatus),
 }
 
 /// A decoded frame with its link sequence number.
@@ -253,6 +421,36 @@ pub fn encode(packet: &Packet) -> Frame {
             out.put(&rx_errors.to_le_bytes());
             out.put(&frames_received.to_le_bytes());
             MessageKind::Telemetry
+        }
+        Message::Arm => {
+            out.put(&ARM_KEY);
+            MessageKind::Arm
+        }
+        Message::Disarm => MessageKind::Disarm,
+        Message::EStop => MessageKind::EStop,
+        Message::Config(c) => {
+            out.put(&[c.count]);
+            out.put(&c.supply_mv.to_le_bytes());
+            out.put(&c.watchdog_ms.to_le_bytes());
+            for r in c.coils() {
+                out.put(&r.resistance_mohm.to_le_bytes());
+                out.put(&r.max_ma.to_le_bytes());
+                out.put(&r.continuous_ma.to_le_bytes());
+                out.put(&r.i2t_budget.to_le_bytes());
+            }
+            MessageKind::Config
+        }
+        Message::Status(st) => {
+            out.put(&[st.state, st.flags, st.count]);
+            for ch in st.channels() {
+                out.put(&ch.commanded_ma.to_le_bytes());
+                out.put(&ch.applied_ma.to_le_bytes());
+                out.put(&ch.measured_ma.to_le_bytes());
+                out.put(&ch.thermal_permille.to_le_bytes());
+            }
+            out.put(&st.rx_errors.to_le_bytes());
+            out.put(&st.frames_received.to_le_bytes());
+            MessageKind::Status
         }
     };
     let payload_len = (out.len - HEADER_LEN) as u16;
@@ -434,6 +632,18 @@ pub fn check_decoder_invariants(data: &[u8]) {
     }
 }
 
+/// The first valid packet in `bytes` (a whole frame, e.g. from [`encode`]), if any.
+pub fn decode_one(bytes: &[u8]) -> Option<Packet> {
+    let mut decoder = Decoder::new();
+    let mut first = None;
+    decoder.push_with(bytes, |p| {
+        if first.is_none() {
+            first = Some(p);
+        }
+    });
+    first
+}
+
 fn find_sync(bytes: &[u8]) -> Option<usize> {
     bytes.windows(2).position(|w| w == SYNC)
 }
@@ -487,6 +697,56 @@ fn parse_payload(kind: MessageKind, payload: &[u8]) -> Option<Message> {
                 rx_errors: read_u32(&tail[1..]),
                 frames_received: read_u32(&tail[5..]),
             })
+        }
+        MessageKind::Arm if payload == ARM_KEY => Some(Message::Arm),
+        MessageKind::Disarm if payload.is_empty() => Some(Message::Disarm),
+        MessageKind::EStop if payload.is_empty() => Some(Message::EStop),
+        MessageKind::Config if payload.len() >= CONFIG_FIXED => {
+            let n = usize::from(payload[0]);
+            if n > MAX_COILS || payload.len() != CONFIG_FIXED + CONFIG_PER_COIL * n {
+                return None;
+            }
+            let mut coils = [CoilRating::default(); MAX_COILS];
+            for (k, c) in coils.iter_mut().take(n).enumerate() {
+                let b = &payload[CONFIG_FIXED + CONFIG_PER_COIL * k..];
+                *c = CoilRating {
+                    resistance_mohm: read_u32(b),
+                    max_ma: read_u32(&b[4..]),
+                    continuous_ma: read_u32(&b[8..]),
+                    i2t_budget: read_u32(&b[12..]),
+                };
+            }
+            Some(Message::Config(BoardConfig {
+                supply_mv: read_u32(&payload[1..]),
+                watchdog_ms: u16::from_le_bytes([payload[5], payload[6]]),
+                coils,
+                count: n as u8,
+            }))
+        }
+        MessageKind::Status if payload.len() >= STATUS_FIXED => {
+            let n = usize::from(payload[2]);
+            if n > MAX_COILS || payload.len() != STATUS_FIXED + STATUS_PER_COIL * n {
+                return None;
+            }
+            let mut channels = [ChannelStatus::default(); MAX_COILS];
+            for (k, ch) in channels.iter_mut().take(n).enumerate() {
+                let b = &payload[3 + STATUS_PER_COIL * k..];
+                *ch = ChannelStatus {
+                    commanded_ma: read_u32(b) as i32,
+                    applied_ma: read_u32(&b[4..]) as i32,
+                    measured_ma: read_u32(&b[8..]) as i32,
+                    thermal_permille: u16::from_le_bytes([b[12], b[13]]),
+                };
+            }
+            let tail = &payload[3 + STATUS_PER_COIL * n..];
+            Some(Message::Status(BoardStatus {
+                state: payload[0],
+                flags: payload[1],
+                channels,
+                count: n as u8,
+                rx_errors: read_u32(tail),
+                frames_received: read_u32(&tail[4..]),
+            }))
         }
         _ => None,
     }
