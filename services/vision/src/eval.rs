@@ -166,6 +166,22 @@ pub fn evaluate_classical(classical: &ClassicalLocalizer, split: &Split) -> Repo
     t.report("classical", split.len())
 }
 
+/// The accuracy columns of a table row: precision, recall, IoU, detection rates, keypoint errors.
+fn accuracy_cells(r: &Report) -> String {
+    format!(
+        "{:.2} % | {:.2} % | {:.2} % | {:.1} % | {:.1} % | {:.3} / {:.3} | {:.3} / {:.3}",
+        100.0 * r.precision,
+        100.0 * r.recall,
+        100.0 * r.iou,
+        100.0 * r.detection_rate,
+        100.0 * r.false_detection_rate,
+        r.centroid_err_mm_median,
+        r.centroid_err_mm_p95,
+        r.tip_err_mm_median,
+        r.tip_err_mm_p95,
+    )
+}
+
 /// A Markdown table of reports side by side.
 pub fn table(reports: &[Report]) -> String {
     let mut out = String::from(
@@ -173,18 +189,10 @@ pub fn table(reports: &[Report]) -> String {
     );
     for r in reports {
         out.push_str(&format!(
-            "| {} | {} | {:.2} % | {:.2} % | {:.2} % | {:.1} % | {:.1} % | {:.3} / {:.3} | {:.3} / {:.3} | {:.2} / {:.2} |\n",
+            "| {} | {} | {} | {:.2} / {:.2} |\n",
             r.name,
             r.samples,
-            100.0 * r.precision,
-            100.0 * r.recall,
-            100.0 * r.iou,
-            100.0 * r.detection_rate,
-            100.0 * r.false_detection_rate,
-            r.centroid_err_mm_median,
-            r.centroid_err_mm_p95,
-            r.tip_err_mm_median,
-            r.tip_err_mm_p95,
+            accuracy_cells(r),
             r.latency_ms_median,
             r.latency_ms_p99
         ));
@@ -248,7 +256,7 @@ pub fn robustness_table(rows: &[RobustnessRow]) -> String {
     for row in rows {
         let r = &row.report;
         out.push_str(&format!(
-            "| {} | {} | {} | {:.2} % | {:.2} % | {:.2} % | {:.1} % | {:.1} % | {:.3} / {:.3} | {:.3} / {:.3} |\n",
+            "| {} | {} | {} | {} |\n",
             row.family,
             if row.severity == 0 {
                 "–".to_string()
@@ -256,15 +264,7 @@ pub fn robustness_table(rows: &[RobustnessRow]) -> String {
                 format!("{} ({})", row.severity, row.description)
             },
             r.name,
-            100.0 * r.precision,
-            100.0 * r.recall,
-            100.0 * r.iou,
-            100.0 * r.detection_rate,
-            100.0 * r.false_detection_rate,
-            r.centroid_err_mm_median,
-            r.centroid_err_mm_p95,
-            r.tip_err_mm_median,
-            r.tip_err_mm_p95,
+            accuracy_cells(r),
         ));
     }
     out
