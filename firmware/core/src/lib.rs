@@ -47,7 +47,7 @@ pub struct HardwareLimits {
 }
 
 impl HardwareLimits {
-    /// A board of `channels` 30 A drivers on a 12–80 V supply, watchdog 20 ms … 1 s.
+    /// A board of `channels` 30 A drivers on a 12–80 V supply, watchdog 20 ms … 2 s.
     pub const fn standard(channels: usize) -> Self {
         Self {
             channels,
@@ -55,7 +55,7 @@ impl HardwareLimits {
             min_supply_mv: 12_000,
             max_supply_mv: 80_000,
             min_watchdog_ms: 20,
-            max_watchdog_ms: 1000,
+            max_watchdog_ms: 2000,
         }
     }
 }
@@ -340,6 +340,20 @@ impl Board {
         }
     }
 
+    /// Whether the outputs drive now: armed and the watchdog fed.
+    pub fn driving(&self) -> bool {
+        self.state == BoardState::Armed && !self.watchdog_tripped
+    }
+
+    /// The currents the channels drive now, mA (zero when not [`Self::driving`]).
+    pub fn driven_ma(&self) -> [i32; MAX_COILS] {
+        if self.driving() {
+            self.applied_ma
+        } else {
+            [0; MAX_COILS]
+        }
+    }
+
     /// The H-bridge drives: duty = |I| R / V_supply, zero unless armed and fed.
     pub fn outputs(&self) -> [ChannelOutput; MAX_COILS] {
         let mut out = [ChannelOutput::default(); MAX_COILS];
@@ -367,7 +381,7 @@ impl Board {
     pub fn status(&mut self) -> Packet {
         let mut channels = [ChannelStatus::default(); MAX_COILS];
         let mut derating = false;
-        let driving = self.state == BoardState::Armed && !self.watchdog_tripped;
+        let driving = self.driving();
         for (k, ch) in channels.iter_mut().take(self.channels()).enumerate() {
             let thermal = self.config.as_ref().map_or(0.0, |c| {
                 let r = &c.coils()[k];

@@ -263,6 +263,12 @@ impl CoilBus {
         self.start_zero_written = true;
     }
 
+    /// Whether the board may be armed: this process has put it in a known state (its start-up
+    /// zero went out).
+    pub fn may_arm(&self) -> bool {
+        self.start_zero_written
+    }
+
     pub fn safe_zero(&mut self) -> Output {
         self.status.frame_seq = NO_FRAME;
         self.status.applied_currents_a = [0.0; MAX_COILS];
@@ -377,6 +383,7 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CoilbusSetup) -> anyho
     let commands = Inbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
     let status_out = Outbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
     let mut link = SerialLink::new(port_path.clone(), config.baud);
+    link.set_board_config(board_config(&limits, coil_count));
     let mut link_log = RunLogWriter::<LinkEventRow>::in_run_dir(&rt.env.run_dir)
         .context("opening the link log")?;
     let mut bus = CoilBus::new(
@@ -393,6 +400,7 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CoilbusSetup) -> anyho
     tracing::info!(port = %port_path.display(), "coilbus ready");
     service_loop.run(&mut rt.heartbeat, |_| {
         let now = Instant::now();
+        link.set_arm_wanted(bus.may_arm());
         service_link(&mut link, &mut bus, &mut link_log, now);
         let received = commands.receive_all()?;
         if let Some(out) = apply_commands(&mut link, &mut bus, &received, now) {
@@ -416,8 +424,46 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CoilbusSetup) -> anyho
     // Safe state first: zero the coils before leaving.
     let out = bus.safe_zero();
     write_output(&mut link, &mut bus, &out);
-    tracing::info!("coilbus stopped; coils zeroed");
+    link.send(&Message::Disarm);
+    tracing::info!("coilbus stopped; coils zeroed, board disarmed");
     Ok(())
+}
+
+/// Board watchdog the host asks for, ms (the emulated and the real board zero on it).
+const BOARD_WATCHDOG_MS: u16 = 250;
+/// Heat budget above the continuous rating, in seconds at the current limit.
+const THERMAL_BUDGET_S: f64 = 10.0;
+
+/// The board's `Config` from the rig's ratings: each coil's resistance and current limit (the
+/// rig derives the limit from the coil's continuous power rating, so it is also the continuous
+/// current), and the supply that drives the largest limit through its coil (I·R, at least the
+/// board's 12 V minimum).
+pub fn board_config(limits: &CurrentLimits, coil_count: usize) -> protocol::BoardConfig {
+    let n = coil_count.min(MAX_COILS);
+    let ratings: Vec<protocol::CoilRating> = (0..n)
+        .map(|k| {
+            let max_a = limits.max_current_a[k];
+            let max_ma = (max_a * 1000.0).round().clamp(1.0, u32::MAX as f64) as u32;
+            protocol::CoilRating {
+                resistance_mohm: (limits.coil_resistance_ohm[k] * 1000.0)
+                    .round()
+                    .clamp(1.0, u32::MAX as f64) as u32,
+                max_ma,
+                continuous_ma: max_ma,
+                i2t_budget: (max_a * max_a * THERMAL_BUDGET_S * 1000.0)
+                    .round()
+                    .clamp(1.0, u32::MAX as f64) as u32,
+            }
+        })
+        .collect();
+    let supply_v = (0..n)
+        .map(|k| limits.max_current_a[k] * limits.coil_resistance_ohm[k])
+        .fold(12.0, f64::max)
+        .min(80.0);
+    protocol::BoardConfig::new((supply_v * 1000.0).round() as u32, BOARD_WATCHDOG_MS, &ratings)
+        .unwrap_or_else(|| {
+            protocol::BoardConfig::new(12_000, BOARD_WATCHDOG_MS, &[]).expect("no coils fit")
+        })
 }
 
 /// Reopens a lost link, counts the board's acknowledgements and logs link changes.

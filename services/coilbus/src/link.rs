@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use serialport::{SerialPort, TTYPort};
 
-use crate::protocol::{encode, Decoder, Message, Packet};
+use crate::protocol::{encode, BoardConfig, BoardState, Decoder, Message, Packet};
 
 const RECONNECT_INTERVAL: Duration = Duration::from_millis(100);
 const IO_TIMEOUT: Duration = Duration::from_millis(5);
@@ -35,6 +35,11 @@ pub struct SerialLink {
     was_open: bool,
     last_rx: Option<Instant>,
     events: Vec<LinkEvent>,
+    /// What the board is told at start-up (`Config`), and whether it should be armed.
+    board_config: Option<BoardConfig>,
+    arm_wanted: bool,
+    /// The board's state from its last `Status`.
+    board_state: Option<BoardState>,
 }
 
 impl SerialLink {
@@ -50,6 +55,58 @@ impl SerialLink {
             was_open: false,
             last_rx: None,
             events: Vec::new(),
+            board_config: None,
+            arm_wanted: false,
+            board_state: None,
+        }
+    }
+
+    /// The configuration the board gets whenever it reports itself unconfigured (at start-up
+    /// and after a reset).
+    pub fn set_board_config(&mut self, config: BoardConfig) {
+        self.board_config = Some(config);
+    }
+
+    /// Whether the board should be armed: a configured, disarmed board is sent `Arm` while this
+    /// holds. A latched e-stop or thermal trip is never re-armed from here.
+    pub fn set_arm_wanted(&mut self, wanted: bool) {
+        self.arm_wanted = wanted;
+    }
+
+    /// The board's state from its last `Status` frame (none yet: an old board or no link).
+    pub fn board_state(&self) -> Option<BoardState> {
+        self.board_state
+    }
+
+    /// Opens the link and polls until the board reports itself armed (after `Config` and `Arm`
+    /// when [`Self::set_board_config`] and [`Self::set_arm_wanted`] asked for them), or `timeout`
+    /// passes; true when armed. For tools and tests that talk to a board directly.
+    pub fn wait_armed(&mut self, timeout: Duration) -> bool {
+        let deadline = Instant::now() + timeout;
+        while Instant::now() < deadline {
+            self.ensure_open(Instant::now());
+            self.poll();
+            if self.board_state == Some(BoardState::Armed) {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        false
+    }
+
+    /// Configures and arms the board as its `Status` asks for.
+    fn handshake(&mut self, state: BoardState) {
+        self.board_state = Some(state);
+        match state {
+            BoardState::Unconfigured => {
+                if let Some(config) = self.board_config {
+                    self.send(&Message::Config(config));
+                }
+            }
+            BoardState::Disarmed if self.arm_wanted => {
+                self.send(&Message::Arm);
+            }
+            _ => {}
         }
     }
 
@@ -166,7 +223,15 @@ impl SerialLink {
                 if n > 0 {
                     self.last_rx = Some(Instant::now());
                 }
-                self.decoder.push(&buf[..n])
+                let packets = self.decoder.push(&buf[..n]);
+                let newest = packets.iter().rev().find_map(|p| match &p.message {
+                    Message::Status(st) => BoardState::from_u8(st.state),
+                    _ => None,
+                });
+                if let Some(state) = newest {
+                    self.handshake(state);
+                }
+                packets
             }
             Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Vec::new(),
             Err(e) => {

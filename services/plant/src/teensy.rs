@@ -20,14 +20,14 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use millinav_kit::runlog::{RunLogWriter, TeensyEventRow};
+use millinav_firmware_core::{Board, HardwareLimits};
 use millinav_teensy_protocol::{
-    amps_to_ma, encode, ma_to_amps, AckStatus, CoilValues, Decoder, Message, Packet, FLAG_SAFE_ZERO,
+    amps_to_ma, encode, ma_to_amps, AckStatus, BoardState, CoilValues, Decoder, Message, Packet,
+    FLAG_SAFE_ZERO,
 };
 use serialport::{SerialPort, TTYPort};
 use shm_schemas::{MAX_COILS, NO_FRAME};
 
-/// The board's own per-channel limit (the Roboclaw channels), independent of coilbus.
-const HARDWARE_LIMIT_A: f64 = 30.0;
 const TELEMETRY_PERIOD: Duration = Duration::from_millis(50);
 /// How often the board retries creating its device node if the OS refuses (replug).
 const REPLUG_RETRY: Duration = Duration::from_millis(100);
@@ -81,6 +81,8 @@ impl TeensyOutputs {
 
 struct Shared {
     outputs: Mutex<TeensyOutputs>,
+    /// The board's logic: the same crate the Teensy firmware links (`firmware/core`).
+    board: Mutex<Board>,
     command_arrived: Condvar,
     stop: AtomicBool,
     fault: Mutex<Option<LinkFault>>,
@@ -119,6 +121,7 @@ impl EmulatedTeensy {
                 rx_errors: 0,
                 rejected_frames: 0,
             }),
+            board: Mutex::new(Board::new(HardwareLimits::standard(coil_count))),
             command_arrived: Condvar::new(),
             stop: AtomicBool::new(false),
             fault: Mutex::new(None),
@@ -256,32 +259,51 @@ impl Pty {
     }
 }
 
-/// Zeroes the outputs as a board without power (or in reset) does, and logs why.
+/// A reset board: the firmware starts over, unconfigured and disarmed, outputs zero; logs why.
 fn power_off(shared: &Shared, events: &mut TeensyEvents, event: &str) {
     {
-        let mut out = lock(shared);
-        out.currents_a = [0.0; MAX_COILS];
-        out.watchdog_tripped = true;
+        let mut board = lock_board(shared);
+        let channels = lock(shared).coil_count;
+        *board = Board::new(HardwareLimits::standard(channels));
+        sync_outputs(shared, &board);
     }
     log_event(events, NO_FRAME, 0, &[0.0], event);
 }
 
-/// The board's own watchdog: once no frame came for `watchdog` it zeroes the outputs and logs
-/// `watchdog_zero` (once per trip).
-fn check_watchdog(
-    shared: &Shared,
-    events: &mut RunLogWriter<TeensyEventRow>,
-    last_rx: Option<Instant>,
-    now: Instant,
-    watchdog: Duration,
-) {
+fn lock_board(shared: &Shared) -> std::sync::MutexGuard<'_, Board> {
+    shared.board.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// What the board drives, into the outputs the plant reads.
+fn sync_outputs(shared: &Shared, board: &Board) {
+    let driven = board.driven_ma();
     let mut out = lock(shared);
-    let expired = last_rx.is_none_or(|t| now.duration_since(t) > watchdog);
-    if expired && !out.watchdog_tripped {
-        out.watchdog_tripped = true;
-        out.currents_a = [0.0; MAX_COILS];
-        log_event(events, NO_FRAME, 0, &[0.0], "watchdog_zero");
-        tracing::warn!("emulated Teensy watchdog: no frame for {watchdog:?}, PWM zeroed");
+    for (a, ma) in out.currents_a.iter_mut().zip(driven) {
+        *a = ma_to_amps(ma);
+    }
+    out.watchdog_tripped = !board.driving();
+}
+
+/// Milliseconds on the run's monotonic clock: the board's time base.
+fn board_ms() -> u64 {
+    millinav_kit::clock::monotonic_ns() / 1_000_000
+}
+
+/// Advances the board's clock (watchdog, heat budget); logs `watchdog_zero` or `thermal_trip`
+/// when it stops driving on its own.
+fn board_tick(shared: &Shared, events: &mut TeensyEvents) {
+    let mut board = lock_board(shared);
+    let was_driving = board.driving();
+    board.tick(board_ms(), false, None);
+    sync_outputs(shared, &board);
+    if was_driving && !board.driving() {
+        let why = if board.state() == BoardState::ThermalTrip {
+            "thermal_trip"
+        } else {
+            "watchdog_zero"
+        };
+        log_event(events, NO_FRAME, 0, &[0.0], why);
+        tracing::warn!("emulated Teensy stopped driving on its own: {why}");
     }
 }
 
@@ -294,10 +316,11 @@ fn run_unplugged(
     last_rx: Option<Instant>,
     duration: Duration,
 ) -> bool {
+    let _ = (watchdog, last_rx);
     let until = Instant::now() + duration;
     loop {
         let now = Instant::now();
-        check_watchdog(shared, events, last_rx, now, watchdog);
+        board_tick(shared, events);
         if now >= until {
             return true;
         }
@@ -348,63 +371,73 @@ fn stall(
     true
 }
 
-/// Applies one `SetCurrents` as the board does: a frame for another coil count than the
-/// board's channels is refused (nothing applied, outputs unchanged, logged and counted); else
-/// each channel is clamped to the hardware limit and driven.
-fn apply_set_currents(
+/// Hands one frame to the board and mirrors what it did into the outputs and the event log;
+/// returns the board's reply (an `Ack` for `SetCurrents`).
+fn apply_packet(
     shared: &Shared,
     events: &mut RunLogWriter<TeensyEventRow>,
-    frame_seq: u64,
-    flags: u8,
-    currents_ma: &CoilValues,
-) -> AckStatus {
-    let coil_count = lock(shared).coil_count;
-    if currents_ma.len() != coil_count {
-        let rejected = {
+    packet: &Packet,
+) -> Option<Packet> {
+    let mut board = lock_board(shared);
+    let reply = board.handle(packet, board_ms());
+    sync_outputs(shared, &board);
+    let driven: Vec<f64> = board.driven_ma().iter().map(|&ma| ma_to_amps(ma)).collect();
+    drop(board);
+    let Message::SetCurrents {
+        frame_seq, flags, ..
+    } = &packet.message
+    else {
+        let event = match packet.message {
+            Message::Config(_) => "config",
+            Message::Arm => "arm",
+            Message::Disarm => "disarm",
+            Message::EStop => "estop",
+            _ => return reply,
+        };
+        log_event(events, NO_FRAME, 0, &driven, event);
+        return reply;
+    };
+    let (frame_seq, flags) = (*frame_seq, *flags);
+    let status = match reply.as_ref().map(|p| &p.message) {
+        Some(Message::Ack { status, .. }) => *status,
+        _ => AckStatus::Applied as u8,
+    };
+    if status == AckStatus::RejectedCoilCount as u8 {
+        let (rejected, coil_count) = {
             let mut out = lock(shared);
             out.rejected_frames += 1;
-            out.rejected_frames
+            (out.rejected_frames, out.coil_count)
         };
         log_event(events, frame_seq, flags, &[0.0], "rejected_coil_count");
         if rejected == 1 || rejected.is_multiple_of(REJECTION_LOG_EVERY) {
             tracing::error!(
                 rejected,
-                "emulated Teensy rejected a frame for {} coils: the board has {coil_count} \
-                 channels; nothing applied",
-                currents_ma.len()
+                "emulated Teensy rejected a frame for another coil count: the board has \
+                 {coil_count} channels; nothing applied"
             );
         }
-        return AckStatus::RejectedCoilCount;
+        return reply;
     }
-    let mut clamped = false;
-    let mut currents = [0.0; MAX_COILS];
-    for (current, ma) in currents.iter_mut().zip(currents_ma.as_slice()) {
-        let a = ma_to_amps(*ma);
-        clamped |= a.abs() > HARDWARE_LIMIT_A;
-        *current = a.clamp(-HARDWARE_LIMIT_A, HARDWARE_LIMIT_A);
+    if status == AckStatus::NotArmed as u8 {
+        log_event(events, frame_seq, flags, &[0.0], "not_armed");
+        return reply;
     }
     let event = if flags & FLAG_SAFE_ZERO != 0 {
         "safe_zero"
     } else {
         "command"
     };
-    log_event(events, frame_seq, flags, &currents, event);
+    log_event(events, frame_seq, flags, &driven, event);
     {
         let mut out = lock(shared);
-        out.currents_a = currents;
-        out.watchdog_tripped = false;
         out.frames_received += 1;
         if flags & FLAG_SAFE_ZERO == 0 {
             out.last_command_frame = frame_seq;
-            out.last_command_currents_a = currents;
+            out.last_command_currents_a[..driven.len()].copy_from_slice(&driven);
         }
     }
     shared.command_arrived.notify_all();
-    if clamped {
-        AckStatus::Clamped
-    } else {
-        AckStatus::Applied
-    }
+    reply
 }
 
 enum Served {
@@ -473,30 +506,15 @@ fn serve(
         };
         let now = Instant::now();
         for packet in packets {
-            let Message::SetCurrents {
-                frame_seq,
-                flags,
-                currents_ma,
-            } = packet.message
-            else {
-                continue;
-            };
-            let status = apply_set_currents(shared, events, frame_seq, flags, &currents_ma);
-            if status != AckStatus::RejectedCoilCount {
+            if let Message::SetCurrents { .. } = packet.message {
                 *last_rx = Some(now);
             }
-            tx_seq = tx_seq.wrapping_add(1);
-            let ack = encode(&Packet {
-                seq: tx_seq,
-                message: Message::Ack {
-                    acked_seq: packet.seq,
-                    status: status as u8,
-                },
-            });
-            let _ = port.write_all(&ack);
+            if let Some(reply) = apply_packet(shared, events, &packet) {
+                let _ = port.write_all(&encode(&reply));
+            }
         }
         lock(shared).rx_errors = decoder.counters.errors();
-        check_watchdog(shared, events, *last_rx, now, watchdog);
+        board_tick(shared, events);
         if now.duration_since(last_telemetry) >= TELEMETRY_PERIOD {
             last_telemetry = now;
             let out = lock(shared).clone();
@@ -514,6 +532,12 @@ fn serve(
                 },
             });
             let _ = port.write_all(&telemetry);
+            let status = {
+                let mut board = lock_board(shared);
+                board.rx_errors = out.rx_errors.min(u32::MAX as u64) as u32;
+                board.status()
+            };
+            let _ = port.write_all(&encode(&status));
         }
     }
     Served::Stopped

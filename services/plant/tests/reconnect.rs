@@ -17,6 +17,19 @@ fn command(frame_seq: u64, amps: f64) -> Message {
     }
 }
 
+/// A link that configures the board for `channels` paper-rated coils (6 A, 10 Ω) with a
+/// `watchdog_ms` board watchdog and arms it.
+fn armed_link(link_path: &std::path::Path, channels: usize, watchdog_ms: u16) -> SerialLink {
+    let mut link = SerialLink::new(link_path.to_owned(), 115_200);
+    let limits = millinav_coilbus::safety::CurrentLimits::uniform(6.0, 10.0, 2160.0);
+    let mut config = millinav_coilbus::board_config(&limits, channels);
+    config.watchdog_ms = watchdog_ms;
+    link.set_board_config(config);
+    link.set_arm_wanted(true);
+    assert!(link.wait_armed(Duration::from_secs(5)), "the board never armed");
+    link
+}
+
 /// Keeps (re)opening and sending `frame_seq` until the Teensy applied it.
 fn deliver(link: &mut SerialLink, teensy: &EmulatedTeensy, frame_seq: u64, amps: f64) -> bool {
     let deadline = Instant::now() + Duration::from_secs(5);
@@ -44,7 +57,7 @@ fn serial_link_reconnects_when_the_port_comes_back() {
 
     let first =
         EmulatedTeensy::start(&link_path, &dir.join("events1.csv"), watchdog, COIL_COUNT).unwrap();
-    let mut link = SerialLink::new(link_path.clone(), 115_200);
+    let mut link = armed_link(&link_path, COIL_COUNT, 250);
     assert!(
         deliver(&mut link, &first, 1, 1.5),
         "first port never answered"
@@ -96,7 +109,7 @@ fn an_unplugged_board_holds_its_currents_until_its_watchdog_zeroes_them() {
     // Long enough that the checks below never race the watchdog on a loaded machine.
     let watchdog = Duration::from_secs(2);
     let board = EmulatedTeensy::start(&link_path, &events_path, watchdog, COIL_COUNT).unwrap();
-    let mut link = SerialLink::new(link_path.clone(), 115_200);
+    let mut link = armed_link(&link_path, COIL_COUNT, watchdog.as_millis() as u16);
     assert!(deliver(&mut link, &board, 1, 1.5), "no first command");
     board.inject(LinkFault::Unplug(Duration::from_secs(3)));
     let until = Instant::now() + Duration::from_secs(1);

@@ -18,6 +18,19 @@ fn set_currents(frame_seq: u64, amps: f64, coils: usize) -> Message {
     }
 }
 
+/// A link that configures the board for `channels` paper-rated coils (6 A, 10 Ω) with a
+/// `watchdog_ms` board watchdog and arms it.
+fn armed_link(link_path: &std::path::Path, channels: usize, watchdog_ms: u16) -> SerialLink {
+    let mut link = SerialLink::new(link_path.to_owned(), 115_200);
+    let limits = millinav_coilbus::safety::CurrentLimits::uniform(6.0, 10.0, 2160.0);
+    let mut config = millinav_coilbus::board_config(&limits, channels);
+    config.watchdog_ms = watchdog_ms;
+    link.set_board_config(config);
+    link.set_arm_wanted(true);
+    assert!(link.wait_armed(Duration::from_secs(5)), "the board never armed");
+    link
+}
+
 /// Sends `message` until the board acknowledges it (the pty may need a moment to open);
 /// returns the ack status.
 fn send_until_acked(link: &mut SerialLink, message: &Message) -> Option<u8> {
@@ -54,7 +67,7 @@ fn a_frame_for_another_coil_count_is_rejected_and_drives_nothing() {
         BOARD_CHANNELS,
     )
     .unwrap();
-    let mut link = SerialLink::new(link_path.clone(), 115_200);
+    let mut link = armed_link(&link_path, BOARD_CHANNELS, 250);
 
     let status = send_until_acked(&mut link, &set_currents(1, 1.5, BOARD_CHANNELS));
     assert_eq!(status, Some(AckStatus::Applied as u8));
