@@ -460,10 +460,14 @@ pub fn board_config(limits: &CurrentLimits, coil_count: usize) -> protocol::Boar
         .map(|k| limits.max_current_a[k] * limits.coil_resistance_ohm[k])
         .fold(12.0, f64::max)
         .min(80.0);
-    protocol::BoardConfig::new((supply_v * 1000.0).round() as u32, BOARD_WATCHDOG_MS, &ratings)
-        .unwrap_or_else(|| {
-            protocol::BoardConfig::new(12_000, BOARD_WATCHDOG_MS, &[]).expect("no coils fit")
-        })
+    protocol::BoardConfig::new(
+        (supply_v * 1000.0).round() as u32,
+        BOARD_WATCHDOG_MS,
+        &ratings,
+    )
+    .unwrap_or_else(|| {
+        protocol::BoardConfig::new(12_000, BOARD_WATCHDOG_MS, &[]).expect("no coils fit")
+    })
 }
 
 /// Reopens a lost link, counts the board's acknowledgements and logs link changes.

@@ -32,6 +32,7 @@ use shm_schemas::{
 use crate::model::{PlantModel, PlantPhysicsConfig, PlantState};
 use crate::render::{Camera, CameraConfig, CapsulePose};
 use crate::teensy::{EmulatedTeensy, LinkFault};
+use millinav_teensy_protocol::BoardState;
 
 /// `[plant]` section of a scenario.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -257,6 +258,9 @@ fn log_truth(
     }
 }
 
+/// How often a lockstep plant looks whether the board is armed before its first frame.
+const BOARD_POLL: Duration = Duration::from_millis(5);
+
 /// The plant process: publish frame k and its truth, wait for the command that answers it
 /// (lockstep) or for the next frame time (realtime), step the physics, repeat until the run's
 /// duration or SIGINT / SIGTERM.
@@ -276,6 +280,13 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: PlantSetup) -> anyhow::
             ClockMode::Lockstep => millinav_kit::clock::secs_to_ns(twin.state.time_s),
             ClockMode::Realtime => rt.env.run_clock_ns(),
         };
+        if !twin.board_ready() {
+            // Lockstep starts with the board armed: a command to a disarmed board is refused,
+            // and the run would begin with a frame nobody can answer.
+            keep_alive(&mut rt.heartbeat, &[&twin.frames, &twin.truth_out]);
+            std::thread::sleep(BOARD_POLL);
+            continue;
+        }
         twin.show_frame(&rt.rec, run_time_ns)?;
         keep_alive(&mut rt.heartbeat, &[&twin.frames, &twin.truth_out]);
         if twin.state.time_s >= scenario.run.duration_s {
@@ -478,6 +489,14 @@ impl<'s> Twin<'s> {
                 .inject(LinkFault::Hang(Duration::from_millis(faults.hang_ms))),
             None => {}
         }
+    }
+
+    /// Whether the run may show its next frame: in lockstep the first frame waits until coilbus
+    /// has configured and armed the board (the chain answers it only then); realtime runs on.
+    fn board_ready(&self) -> bool {
+        self.started
+            || self.scenario.run.mode == ClockMode::Realtime
+            || self.teensy.board_state() == BoardState::Armed
     }
 
     /// The coil currents to step with. Lockstep: the command answering this frame, or what the

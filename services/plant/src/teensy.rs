@@ -19,8 +19,8 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use millinav_kit::runlog::{RunLogWriter, TeensyEventRow};
 use millinav_firmware_core::{Board, HardwareLimits};
+use millinav_kit::runlog::{RunLogWriter, TeensyEventRow};
 use millinav_teensy_protocol::{
     amps_to_ma, encode, ma_to_amps, AckStatus, BoardState, CoilValues, Decoder, Message, Packet,
     FLAG_SAFE_ZERO,
@@ -187,6 +187,11 @@ impl EmulatedTeensy {
 
     pub fn outputs(&self) -> TeensyOutputs {
         lock(&self.shared).clone()
+    }
+
+    /// The board's state (unconfigured, disarmed, armed, e-stopped, tripped).
+    pub fn board_state(&self) -> BoardState {
+        lock_board(&self.shared).state()
     }
 
     /// Blocks until a command for `frame_seq` (or newer) has been applied, or `timeout` passes.

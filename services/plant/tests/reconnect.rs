@@ -26,7 +26,10 @@ fn armed_link(link_path: &std::path::Path, channels: usize, watchdog_ms: u16) ->
     config.watchdog_ms = watchdog_ms;
     link.set_board_config(config);
     link.set_arm_wanted(true);
-    assert!(link.wait_armed(Duration::from_secs(5)), "the board never armed");
+    assert!(
+        link.wait_armed(Duration::from_secs(5)),
+        "the board never armed"
+    );
     link
 }
 
