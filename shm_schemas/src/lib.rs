@@ -483,6 +483,61 @@ pub enum LinkState {
     Connected = 1,
 }
 
+/// `CoilStatus::board_state` before the board sent its first `Status`.
+pub const BOARD_STATE_UNKNOWN: u8 = u8::MAX;
+
+/// The name of a `CoilStatus::board_state` value, for logs and viewers.
+pub fn board_state_name(state: u8) -> &'static str {
+    match state {
+        0 => "unconfigured",
+        1 => "disarmed",
+        2 => "armed",
+        3 => "estop",
+        4 => "thermal_trip",
+        BOARD_STATE_UNKNOWN => "unknown",
+        _ => "invalid",
+    }
+}
+
+/// Why coilbus holds the coils safe on the board's account (`CoilStatus::board_fault`). Latched
+/// until coilbus restarts.
+#[repr(u8)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BoardFault {
+    None = 0,
+    /// The board speaks another serial-protocol version.
+    ProtocolVersion = 1,
+    /// The board latched its emergency stop (input pin or `EStop` frame).
+    EStop = 2,
+    /// A coil spent its I²t budget and the board tripped.
+    ThermalTrip = 3,
+    /// The board's telemetry disagrees with what coilbus commanded (state, clamps, currents).
+    TelemetryDisagrees = 4,
+}
+
+impl BoardFault {
+    pub fn from_u8(value: u8) -> Option<Self> {
+        Some(match value {
+            0 => Self::None,
+            1 => Self::ProtocolVersion,
+            2 => Self::EStop,
+            3 => Self::ThermalTrip,
+            4 => Self::TelemetryDisagrees,
+            _ => return None,
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::None => "none",
+            Self::ProtocolVersion => "protocol_version",
+            Self::EStop => "estop",
+            Self::ThermalTrip => "thermal_trip",
+            Self::TelemetryDisagrees => "telemetry_disagrees",
+        }
+    }
+}
+
 /// What coilbus applied and how healthy its link is.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
@@ -499,8 +554,18 @@ pub struct CoilStatus {
     /// 1 while currents are zeroed because commands missed their deadline; read it with
     /// [`CoilStatus::watchdog`].
     pub watchdog_tripped: Flag,
+    /// The board's state from its newest `Status` (`BoardState` of the serial protocol:
+    /// 0 unconfigured, 1 disarmed, 2 armed, 3 e-stop, 4 thermal trip), or
+    /// [`BOARD_STATE_UNKNOWN`] before the first `Status`.
+    pub board_state: u8,
+    /// The board's `STATUS_*` flags from its newest `Status`.
+    pub board_flags: u8,
+    /// A `BoardFault` discriminant: why coilbus holds the coils safe (0 = none).
+    pub board_fault: u8,
     /// Sent as 0, ignored.
-    pub reserved: [u8; 7],
+    pub reserved: [u8; 2],
+    /// The most used heat budget over the coils, ‰ (1000 = tripped).
+    pub thermal_permille: u16,
     pub frames_sent: u64,
     pub acks_received: u64,
     pub rx_errors: u64,
@@ -612,7 +677,8 @@ assert_layout!(CoilCommand, size 216, align 8, {
 });
 assert_layout!(CoilStatus, size 224, align 8, {
     frame_seq @ 0, applied_currents_a @ 8, link_state @ 136, active_coils @ 140,
-    watchdog_tripped @ 144, reserved @ 145, frames_sent @ 152, acks_received @ 160,
+    watchdog_tripped @ 144, board_state @ 145, board_flags @ 146, board_fault @ 147,
+    reserved @ 148, thermal_permille @ 150, frames_sent @ 152, acks_received @ 160,
     rx_errors @ 168, stale_commands_rejected @ 176, clamp_events @ 184, deadline_misses @ 192,
     reconnects @ 200, coil_count_rejected @ 208, board_rejected @ 216,
 });

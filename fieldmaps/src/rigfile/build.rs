@@ -102,6 +102,9 @@ fn check_name(
     Ok(())
 }
 
+/// Default heat budget of a coil above its continuous rating: this many seconds at its limit.
+const DEFAULT_THERMAL_BUDGET_S: f64 = 10.0;
+
 fn require_positive(ctx: &Ctx<'_>, field: &str, v: f64) -> Result<(), RigFileError> {
     if positive(v) {
         Ok(())
@@ -265,6 +268,21 @@ fn build_coils(
         };
         require_positive(ctx, &at("resistance_ohm"), c.resistance_ohm)?;
         require_positive(ctx, &at("max_current_a"), c.max_current_a)?;
+        let continuous_current_a = c.continuous_current_a.unwrap_or(c.max_current_a);
+        require_positive(ctx, &at("continuous_current_a"), continuous_current_a)?;
+        if continuous_current_a > c.max_current_a {
+            return Err(ctx.err(
+                at("continuous_current_a"),
+                format!(
+                    "{continuous_current_a} A is above max_current_a = {} A",
+                    c.max_current_a
+                ),
+            ));
+        }
+        let thermal_budget_a2s = c
+            .thermal_budget_a2s
+            .unwrap_or(c.max_current_a * c.max_current_a * DEFAULT_THERMAL_BUDGET_S);
+        require_positive(ctx, &at("thermal_budget_a2s"), thermal_budget_a2s)?;
         let saturation = match &c.saturation {
             None => None,
             Some(points) => Some(
@@ -280,6 +298,8 @@ fn build_coils(
             winding,
             resistance_ohm: c.resistance_ohm,
             max_current_a: c.max_current_a,
+            continuous_current_a,
+            thermal_budget_a2s,
             saturation,
         });
     }

@@ -145,6 +145,11 @@ pub struct RigCoil {
     pub winding: Option<Winding>,
     pub resistance_ohm: f64,
     pub max_current_a: f64,
+    /// Current the coil carries indefinitely, A (≤ `max_current_a`).
+    pub continuous_current_a: f64,
+    /// Heat above the continuous rating the coil tolerates, ∫(I² − I_c²) dt in A²·s: the
+    /// board's I²t budget.
+    pub thermal_budget_a2s: f64,
     /// Effective gain against current (`saturation`), if the coil saturates.
     pub saturation: Option<crate::rig::SaturationCurve>,
 }

@@ -44,6 +44,10 @@ pub(crate) struct CoilSection {
     pub winding: Option<WindingSection>,
     pub resistance_ohm: f64,
     pub max_current_a: f64,
+    /// Current the coil carries indefinitely (default: `max_current_a`).
+    pub continuous_current_a: Option<f64>,
+    /// Heat above the continuous rating the coil tolerates, A²·s (default: 10 s at the limit).
+    pub thermal_budget_a2s: Option<f64>,
     /// [[current_a, gain], …]: effective gain against current; absent = linear coil.
     #[serde(default)]
     pub saturation: Option<Vec<[f64; 2]>>,

@@ -3,6 +3,7 @@
 //! over the serial protocol, zeroes the coils when commands miss their deadline, and reconnects
 //! when the port goes away.
 
+pub mod board;
 pub mod link;
 pub mod safety;
 pub use millinav_teensy_protocol as protocol;
@@ -21,10 +22,11 @@ use millinav_kit::scenario::Scenario;
 use millinav_kit::{ConfigError, Runtime, ServiceLoop};
 use serde::{Deserialize, Serialize};
 use shm_schemas::{
-    deadlines, services, CoilCommand, CoilStatus, ContractError, ControlMode, Flag, LinkState,
-    MAX_COILS, NO_FRAME,
+    deadlines, services, BoardFault, CoilCommand, CoilStatus, ContractError, ControlMode, Flag,
+    LinkState, BOARD_STATE_UNKNOWN, MAX_COILS, NO_FRAME,
 };
 
+use crate::board::{BoardMonitor, TelemetryTolerance};
 use crate::link::SerialLink;
 use crate::protocol::{AckStatus, CoilValues, Message, FLAG_SAFE_ZERO};
 use crate::safety::{clamp_currents, CurrentLimits, StaleFilter};
@@ -52,6 +54,8 @@ pub struct CoilbusConfig {
     pub command_deadline_ms: u64,
     /// Period of the housekeeping tick (reconnect, telemetry, safe-state keepalive).
     pub tick_ms: u64,
+    /// `[coilbus.telemetry]`: how far the board's telemetry may stray from the command.
+    pub telemetry: TelemetryTolerance,
 }
 
 impl Default for CoilbusConfig {
@@ -64,6 +68,7 @@ impl Default for CoilbusConfig {
             coil_count: None,
             command_deadline_ms: deadlines::COMMAND.as_millis() as u64,
             tick_ms: 20,
+            telemetry: TelemetryTolerance::default(),
         }
     }
 }
@@ -112,6 +117,8 @@ pub struct CoilBus {
     last_accepted: Option<Instant>,
     /// Whether this process has written its start-up safe zero to the board.
     start_zero_written: bool,
+    /// The board's telemetry against what this bus sent it.
+    pub board: BoardMonitor,
     pub status: CoilStatus,
 }
 
@@ -137,6 +144,11 @@ impl CoilBus {
     /// rejects larger counts before this is built).
     pub fn new(limits: CurrentLimits, deadline: Duration, coil_count: usize) -> Self {
         let coil_count = coil_count.min(MAX_COILS);
+        let board = BoardMonitor::new(
+            coil_count,
+            &limits.max_current_a[..coil_count],
+            TelemetryTolerance::default(),
+        );
         Self {
             limits,
             coil_count,
@@ -144,7 +156,9 @@ impl CoilBus {
             stale: StaleFilter::default(),
             last_accepted: None,
             start_zero_written: false,
+            board,
             status: CoilStatus {
+                board_state: BOARD_STATE_UNKNOWN,
                 frame_seq: NO_FRAME,
                 active_coils: coil_count as u32,
                 watchdog_tripped: Flag::TRUE,
@@ -170,6 +184,10 @@ impl CoilBus {
     /// (link down) does not make its frame count as applied. A command for another coil count
     /// is rejected (counted in `coil_count_rejected`, logged) and nothing is driven for it.
     pub fn on_command(&mut self, cmd: &CoilCommand) -> Option<Output> {
+        if self.board.fault().is_some() {
+            // The board went safe or cannot be trusted: nothing but zeros until a restart.
+            return None;
+        }
         let requested = match self.check_coil_count(cmd) {
             Ok(currents) => currents,
             Err(e) => {
@@ -234,6 +252,9 @@ impl CoilBus {
     /// Checks the command deadline; returns a zeroing output when it just tripped or while
     /// tripped (a keep-alive so the Teensy keeps seeing the safe state).
     pub fn on_tick(&mut self, now: Instant) -> Option<Output> {
+        if self.board.fault().is_some() {
+            return Some(self.safe_zero());
+        }
         let expired = self
             .last_accepted
             .is_none_or(|t| now.duration_since(t) > self.deadline);
@@ -266,7 +287,38 @@ impl CoilBus {
     /// Whether the board may be armed: this process has put it in a known state (its start-up
     /// zero went out).
     pub fn may_arm(&self) -> bool {
-        self.start_zero_written
+        self.start_zero_written && self.board.fault().is_none()
+    }
+
+    /// Uses `tolerance` for the board's telemetry from now on.
+    pub fn set_telemetry_tolerance(&mut self, tolerance: TelemetryTolerance) {
+        self.board = BoardMonitor::new(
+            self.coil_count,
+            &self.limits.max_current_a[..self.coil_count],
+            tolerance,
+        );
+    }
+
+    /// Checks a board `Status` against what this bus sent; a fault latched now is returned (the
+    /// caller logs it, disarms the board where it still can, and the bus holds zeros).
+    pub fn on_board_status(&mut self, status: &protocol::BoardStatus) -> Option<board::Fault> {
+        let fault = self.board.on_status(status).cloned();
+        self.sync_board_fields();
+        fault
+    }
+
+    /// Refuses a board that speaks another protocol version.
+    pub fn on_foreign_version(&mut self, version: u8) -> Option<board::Fault> {
+        let fault = self.board.foreign_version(version).cloned();
+        self.sync_board_fields();
+        fault
+    }
+
+    fn sync_board_fields(&mut self) {
+        self.status.board_state = self.board.state.map_or(BOARD_STATE_UNKNOWN, |s| s as u8);
+        self.status.board_flags = self.board.flags;
+        self.status.thermal_permille = self.board.thermal_permille;
+        self.status.board_fault = self.board.fault().map_or(BoardFault::None, |f| f.kind) as u8;
     }
 
     pub fn safe_zero(&mut self) -> Output {
@@ -296,6 +348,9 @@ fn write_output(link: &mut SerialLink, bus: &mut CoilBus, out: &Output) -> bool 
     let sent = link.send(&message);
     if sent {
         bus.status.frames_sent += 1;
+        if let Message::SetCurrents { currents_ma, .. } = &message {
+            bus.board.commanded(currents_ma.as_slice());
+        }
     }
     sent
 }
@@ -308,6 +363,16 @@ fn log_output(rec: &millinav_kit::rerun::RecordingStream, out: &Output, bus: &Co
         rec,
         "coilbus/watchdog_tripped",
         f64::from(bus.status.watchdog_tripped.raw()),
+    );
+    let board = &bus.status;
+    if board.board_state != BOARD_STATE_UNKNOWN {
+        recording::scalar(rec, "coilbus/board/state", f64::from(board.board_state));
+    }
+    recording::scalar(rec, "coilbus/board/fault", f64::from(board.board_fault));
+    recording::scalar(
+        rec,
+        "coilbus/board/thermal_permille",
+        f64::from(board.thermal_permille),
     );
 }
 
@@ -328,6 +393,22 @@ pub fn prepare(scenario: &Scenario) -> Result<CoilbusSetup, ConfigError> {
     positive("command_deadline_ms", config.command_deadline_ms)?;
     // A zero tick would make the loop spin.
     positive("tick_ms", config.tick_ms)?;
+    let telemetry = &config.telemetry;
+    if !(telemetry.current_a.is_finite() && telemetry.current_a > 0.0) {
+        return Err(ConfigError::new(format!(
+            "{} must be > 0 A, got {}",
+            field("telemetry.current_a"),
+            telemetry.current_a
+        )));
+    }
+    if !(telemetry.fraction.is_finite() && (0.0..=1.0).contains(&telemetry.fraction)) {
+        return Err(ConfigError::new(format!(
+            "{} must be 0 to 1, got {}",
+            field("telemetry.fraction"),
+            telemetry.fraction
+        )));
+    }
+    positive("telemetry.persistence", u64::from(telemetry.persistence))?;
     if config.port.trim().is_empty() {
         return Err(ConfigError::new(format!(
             "{} must be a serial device or \"auto\"",
@@ -391,6 +472,7 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CoilbusSetup) -> anyho
         Duration::from_millis(config.command_deadline_ms),
         coil_count,
     );
+    bus.set_telemetry_tolerance(config.telemetry);
     let run_start = Instant::now();
 
     let mut service_loop = ServiceLoop::new();
@@ -431,28 +513,20 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CoilbusSetup) -> anyho
 
 /// Board watchdog the host asks for, ms (the emulated and the real board zero on it).
 const BOARD_WATCHDOG_MS: u16 = 250;
-/// Heat budget above the continuous rating, in seconds at the current limit.
-const THERMAL_BUDGET_S: f64 = 10.0;
-
-/// The board's `Config` from the rig's ratings: each coil's resistance and current limit (the
-/// rig derives the limit from the coil's continuous power rating, so it is also the continuous
-/// current), and the supply that drives the largest limit through its coil (I·R, at least the
-/// board's 12 V minimum).
+/// The board's `Config` from the rig's ratings: each coil's resistance, current limit (as
+/// lowered for this run), continuous current and I²t heat budget, and the supply that drives
+/// the largest limit through its coil (I·R, at least the board's 12 V minimum).
 pub fn board_config(limits: &CurrentLimits, coil_count: usize) -> protocol::BoardConfig {
     let n = coil_count.min(MAX_COILS);
+    let to_milli = |v: f64| (v * 1000.0).round().clamp(1.0, u32::MAX as f64) as u32;
     let ratings: Vec<protocol::CoilRating> = (0..n)
         .map(|k| {
             let max_a = limits.max_current_a[k];
-            let max_ma = (max_a * 1000.0).round().clamp(1.0, u32::MAX as f64) as u32;
             protocol::CoilRating {
-                resistance_mohm: (limits.coil_resistance_ohm[k] * 1000.0)
-                    .round()
-                    .clamp(1.0, u32::MAX as f64) as u32,
-                max_ma,
-                continuous_ma: max_ma,
-                i2t_budget: (max_a * max_a * THERMAL_BUDGET_S * 1000.0)
-                    .round()
-                    .clamp(1.0, u32::MAX as f64) as u32,
+                resistance_mohm: to_milli(limits.coil_resistance_ohm[k]),
+                max_ma: to_milli(max_a),
+                continuous_ma: to_milli(limits.continuous_current_a[k].min(max_a)),
+                i2t_budget: to_milli(limits.thermal_budget_a2s[k]),
             }
         })
         .collect();
@@ -478,10 +552,35 @@ fn service_link(
     now: Instant,
 ) {
     link.ensure_open(now);
+    let mut latched = Vec::new();
     for packet in link.poll() {
-        if let Message::Ack { status, .. } = packet.message {
-            bus.on_ack(status);
+        match packet.message {
+            Message::Ack { status, .. } => {
+                bus.on_ack(status);
+                bus.board.acked(status);
+            }
+            Message::Status(status) => latched.extend(bus.on_board_status(&status)),
+            _ => {}
         }
+    }
+    if let Some(version) = link.foreign_version() {
+        latched.extend(bus.on_foreign_version(version));
+    }
+    for fault in latched {
+        tracing::error!(
+            fault = fault.kind.name(),
+            "coils held at zero: {}",
+            fault.detail
+        );
+        // A board that disagrees (or speaks another version) is disarmed; an e-stopped or
+        // tripped one stays latched as it is.
+        if matches!(
+            fault.kind,
+            BoardFault::TelemetryDisagrees | BoardFault::ProtocolVersion
+        ) {
+            link.send(&Message::Disarm);
+        }
+        link.record_board_fault(fault.kind.name(), &fault.detail);
     }
     log_link_events(link_log, link.take_events());
 }

@@ -40,6 +40,8 @@ pub struct SerialLink {
     arm_wanted: bool,
     /// The board's state from its last `Status`.
     board_state: Option<BoardState>,
+    /// Valid packets decoded when the port last opened.
+    packets_at_open: u64,
 }
 
 impl SerialLink {
@@ -58,6 +60,7 @@ impl SerialLink {
             board_config: None,
             arm_wanted: false,
             board_state: None,
+            packets_at_open: 0,
         }
     }
 
@@ -108,6 +111,19 @@ impl SerialLink {
             }
             _ => {}
         }
+    }
+
+    /// The protocol version the board speaks when it is not this host's: well-formed frames of
+    /// another version arrived since the port opened and no valid one did.
+    pub fn foreign_version(&self) -> Option<u8> {
+        self.decoder
+            .foreign_version
+            .filter(|_| self.decoder.counters.packets == self.packets_at_open)
+    }
+
+    /// Logs a board fault with the link's changes (`coilbus_link.csv`).
+    pub fn record_board_fault(&mut self, kind: &str, detail: &str) {
+        self.record("board_fault", format!("{kind}: {detail}"));
     }
 
     pub fn is_open(&self) -> bool {
@@ -163,6 +179,9 @@ impl SerialLink {
             .open_native()
         {
             Ok(port) => {
+                // What waits in the port was written before this process listened (frames
+                // queued while a predecessor was stopped): it says nothing about now.
+                let _ = port.clear(serialport::ClearBuffer::Input);
                 if self.was_open {
                     self.reconnects += 1;
                 }
@@ -170,6 +189,8 @@ impl SerialLink {
                 tracing::info!(port = %path, "serial link open");
                 self.port = Some(port);
                 self.last_rx = Some(now);
+                self.packets_at_open = self.decoder.counters.packets;
+                self.decoder.foreign_version = None;
                 self.record("open", path);
             }
             Err(e) => tracing::debug!(port = %path, "serial open failed: {e}"),

@@ -12,6 +12,10 @@ pub struct CurrentLimits {
     pub max_current_a: [f64; MAX_COILS],
     /// Per coil, for the total power.
     pub coil_resistance_ohm: [f64; MAX_COILS],
+    /// Per coil: current it carries indefinitely, A, and its heat budget above that, A²·s
+    /// (what the board's I²t protection is configured with).
+    pub continuous_current_a: [f64; MAX_COILS],
+    pub thermal_budget_a2s: [f64; MAX_COILS],
     /// Sum of I²R over all coils.
     pub max_total_power_w: f64,
 }
@@ -22,6 +26,8 @@ impl CurrentLimits {
         Self {
             max_current_a: [max_current_a; MAX_COILS],
             coil_resistance_ohm: [coil_resistance_ohm; MAX_COILS],
+            continuous_current_a: [max_current_a; MAX_COILS],
+            thermal_budget_a2s: [max_current_a * max_current_a * 10.0; MAX_COILS],
             max_total_power_w,
         }
     }
@@ -32,6 +38,8 @@ impl CurrentLimits {
         for (i, coil) in rig.coils.iter().take(MAX_COILS).enumerate() {
             limits.max_current_a[i] = coil.max_current_a;
             limits.coil_resistance_ohm[i] = coil.resistance_ohm;
+            limits.continuous_current_a[i] = coil.continuous_current_a;
+            limits.thermal_budget_a2s[i] = coil.thermal_budget_a2s;
         }
         limits
     }

@@ -50,6 +50,33 @@ pub struct PlantConfig {
     pub camera: CameraConfig,
     /// What SIGUSR1 / SIGUSR2 do to the emulated Teensy link (`[plant.link_faults]`).
     pub link_faults: LinkFaultConfig,
+    /// Board faults at set run times (`[plant.board_faults]`).
+    pub board_faults: BoardFaultSchedule,
+}
+
+/// Faults of the emulated coil-driver board at set run times (s on the run clock; none by
+/// default): the e-stop button pressed, the board rebooting, a driver channel whose current
+/// sense reads `sense_fault_gain` × what it drives.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BoardFaultSchedule {
+    pub estop_at_s: Option<f64>,
+    pub reboot_at_s: Option<f64>,
+    pub sense_fault_at_s: Option<f64>,
+    pub sense_fault_channel: usize,
+    pub sense_fault_gain: f64,
+}
+
+impl Default for BoardFaultSchedule {
+    fn default() -> Self {
+        Self {
+            estop_at_s: None,
+            reboot_at_s: None,
+            sense_fault_at_s: None,
+            sense_fault_channel: 0,
+            sense_fault_gain: 0.5,
+        }
+    }
 }
 
 /// Durations of the link faults the plant injects on a signal: SIGUSR1 pulls the USB cable for
@@ -81,6 +108,7 @@ impl Default for PlantConfig {
             physics: PlantPhysicsConfig::default(),
             camera: CameraConfig::default(),
             link_faults: LinkFaultConfig::default(),
+            board_faults: BoardFaultSchedule::default(),
         }
     }
 }
@@ -178,6 +206,35 @@ pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
              (gray8 is for a real camera)",
             rig.path.display(),
             rig.camera.pixel_format
+        )));
+    }
+    let faults = &config.board_faults;
+    for (name, at) in [
+        ("board_faults.estop_at_s", faults.estop_at_s),
+        ("board_faults.reboot_at_s", faults.reboot_at_s),
+        ("board_faults.sense_fault_at_s", faults.sense_fault_at_s),
+    ] {
+        if at.is_some_and(|t| !(t.is_finite() && t >= 0.0)) {
+            return Err(ConfigError::new(format!(
+                "{} must be a run time ≥ 0 s, got {at:?}",
+                field(name)
+            )));
+        }
+    }
+    if faults.sense_fault_channel >= rig.coils.len() {
+        return Err(ConfigError::new(format!(
+            "{} = {}: the rig has {} coils (channels 0 to {})",
+            field("board_faults.sense_fault_channel"),
+            faults.sense_fault_channel,
+            rig.coils.len(),
+            rig.coils.len().saturating_sub(1)
+        )));
+    }
+    if !(faults.sense_fault_gain.is_finite() && faults.sense_fault_gain >= 0.0) {
+        return Err(ConfigError::new(format!(
+            "{} must be ≥ 0, got {}",
+            field("board_faults.sense_fault_gain"),
+            faults.sense_fault_gain
         )));
     }
     let model = load_model(scenario, &rig, &config)?;
@@ -294,6 +351,7 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: PlantSetup) -> anyhow::
             break;
         }
         twin.inject_requested_faults();
+        twin.inject_scheduled_faults();
         // None until the chain answers once: frame 0 is shown again.
         if let Some(currents) = twin.await_command() {
             twin.advance(&currents);
@@ -324,6 +382,8 @@ struct Twin<'s> {
     misses: u64,
     /// The chain has answered a frame once (lockstep).
     started: bool,
+    /// Scheduled board faults already injected.
+    fired: Vec<&'static str>,
     last_recorded: Option<u64>,
     wall_start: Instant,
 }
@@ -385,6 +445,7 @@ impl<'s> Twin<'s> {
             seq: 0,
             misses: 0,
             started: false,
+            fired: Vec::new(),
             last_recorded: None,
             wall_start: Instant::now(),
         })
@@ -475,6 +536,33 @@ impl<'s> Twin<'s> {
             wall_s = self.wall_start.elapsed().as_secs_f64(),
             "run complete"
         );
+    }
+
+    /// Applies the board faults due at this run time (each once).
+    fn inject_scheduled_faults(&mut self) {
+        let now_s = self.state.time_s;
+        let schedule = self.config.board_faults.clone();
+        let mut due = |at: Option<f64>, name: &'static str| {
+            let fire = at.is_some_and(|t| now_s >= t) && !self.fired.contains(&name);
+            if fire {
+                self.fired.push(name);
+                tracing::warn!(at_s = now_s, "board fault injected: {name}");
+            }
+            fire
+        };
+        let estop = due(schedule.estop_at_s, "estop");
+        let reboot = due(schedule.reboot_at_s, "reboot");
+        let sense = due(schedule.sense_fault_at_s, "sense_fault");
+        if estop {
+            self.teensy.press_estop();
+        }
+        if reboot {
+            self.teensy.inject(LinkFault::Reboot);
+        }
+        if sense {
+            self.teensy
+                .fail_channel(schedule.sense_fault_channel, schedule.sense_fault_gain);
+        }
     }
 
     /// Applies the link fault a signal asked for, if any.

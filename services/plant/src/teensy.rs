@@ -44,6 +44,9 @@ pub enum LinkFault {
     /// period the hardware watchdog resets the board (outputs zero); it boots with an empty
     /// receive buffer when the stall ends.
     Hang(Duration),
+    /// A brown-out or a reset: the board restarts at once, unconfigured and disarmed (outputs
+    /// zero) with an empty receive buffer.
+    Reboot,
 }
 
 /// Log the first rejected frame and then every this many (a wrong rig rejects every frame).
@@ -85,6 +88,11 @@ struct Shared {
     board: Mutex<Board>,
     command_arrived: Condvar,
     stop: AtomicBool,
+    /// The e-stop input pin (pressed = true); the board latches on it.
+    estop_pressed: AtomicBool,
+    /// Per channel, what the current sense reads as a fraction of the current driven (1: a
+    /// healthy channel; a faulty driver or an open coil reads less).
+    sense_gain: Mutex<[f64; MAX_COILS]>,
     fault: Mutex<Option<LinkFault>>,
 }
 
@@ -124,6 +132,8 @@ impl EmulatedTeensy {
             board: Mutex::new(Board::new(HardwareLimits::standard(coil_count))),
             command_arrived: Condvar::new(),
             stop: AtomicBool::new(false),
+            estop_pressed: AtomicBool::new(false),
+            sense_gain: Mutex::new([1.0; MAX_COILS]),
             fault: Mutex::new(None),
         });
         let thread_shared = shared.clone();
@@ -183,6 +193,25 @@ impl EmulatedTeensy {
     /// Makes the board suffer `fault` (it acts on it within a few milliseconds).
     pub fn inject(&self, fault: LinkFault) {
         *self.shared.fault.lock().unwrap_or_else(|p| p.into_inner()) = Some(fault);
+    }
+
+    /// Presses the e-stop button (it stays pressed).
+    pub fn press_estop(&self) {
+        self.shared.estop_pressed.store(true, Ordering::Relaxed);
+    }
+
+    /// From now on channel `channel`'s current sense reads `gain` × the current driven (a
+    /// faulty driver channel); other channels read what they drive.
+    pub fn fail_channel(&self, channel: usize, gain: f64) {
+        if let Some(g) = self
+            .shared
+            .sense_gain
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .get_mut(channel)
+        {
+            *g = gain;
+        }
     }
 
     pub fn outputs(&self) -> TeensyOutputs {
@@ -297,15 +326,22 @@ fn board_ms() -> u64 {
 /// Advances the board's clock (watchdog, heat budget); logs `watchdog_zero` or `thermal_trip`
 /// when it stops driving on its own.
 fn board_tick(shared: &Shared, events: &mut TeensyEvents) {
+    let gains = *shared.sense_gain.lock().unwrap_or_else(|p| p.into_inner());
+    let pressed = shared.estop_pressed.load(Ordering::Relaxed);
     let mut board = lock_board(shared);
     let was_driving = board.driving();
-    board.tick(board_ms(), false, None);
+    // The emulated current sense: what the channel drives, times its gain.
+    let mut measured = board.driven_ma();
+    for (ma, gain) in measured.iter_mut().zip(gains) {
+        *ma = (f64::from(*ma) * gain).round() as i32;
+    }
+    board.tick(board_ms(), pressed, Some(&measured));
     sync_outputs(shared, &board);
     if was_driving && !board.driving() {
-        let why = if board.state() == BoardState::ThermalTrip {
-            "thermal_trip"
-        } else {
-            "watchdog_zero"
+        let why = match board.state() {
+            BoardState::ThermalTrip => "thermal_trip",
+            BoardState::EStop => "estop",
+            _ => "watchdog_zero",
         };
         log_event(events, NO_FRAME, 0, &[0.0], why);
         tracing::warn!("emulated Teensy stopped driving on its own: {why}");
@@ -496,6 +532,14 @@ fn serve(
                 // A reset board starts from scratch.
                 decoder = Decoder::new();
                 *last_rx = None;
+                continue;
+            }
+            Some(LinkFault::Reboot) => {
+                power_off(shared, events, "reboot");
+                let _ = port.clear(serialport::ClearBuffer::Input);
+                log_event(events, NO_FRAME, 0, &[0.0], "rebooted");
+                tracing::warn!("emulated Teensy rebooted: unconfigured and disarmed");
+                decoder = Decoder::new();
                 continue;
             }
             None => {}

@@ -23,7 +23,9 @@ use millinav_kit::scenario::Scenario;
 use millinav_kit::{clock, env_vars, recording, rerun, Runtime};
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
-use shm_schemas::{deadlines, services, Heartbeat, ServiceId};
+use shm_schemas::{
+    board_state_name, deadlines, services, BoardFault, CoilStatus, Heartbeat, ServiceId,
+};
 
 use crate::launch::{LaunchFile, ProcessSpec};
 use crate::preflight::{CheckFailure, CheckTarget};
@@ -187,6 +189,9 @@ enum Ending {
     WallTimeLimit,
     /// A child exited with `EXIT_CONFIG`: stop the set and say why.
     ConfigError(FailFast),
+    /// coilbus holds the coils at zero on the board's account (e-stop, thermal trip, telemetry
+    /// that disagrees, another protocol version): the run cannot go on.
+    BoardFault(&'static str),
 }
 
 /// The running set.
@@ -498,6 +503,8 @@ struct Plan {
 struct Heartbeats {
     listeners: Vec<(ServiceId, Listener<ipc::Service>)>,
     health: Inbox<Heartbeat>,
+    /// coilbus's status: the coil-driver board's state, faults and heat.
+    coil_status: Inbox<CoilStatus>,
 }
 
 /// Runs the set until the plant finishes, a signal arrives, a child rejects its
@@ -654,7 +661,12 @@ impl Heartbeats {
             .map(|p| Ok((p.id, heartbeat_listener(&rt.node, p.id)?)))
             .collect::<anyhow::Result<_>>()?;
         let health = Inbox::<Heartbeat>::new(&rt.node, services::HEALTH)?;
-        Ok(Self { listeners, health })
+        let coil_status = Inbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
+        Ok(Self {
+            listeners,
+            health,
+            coil_status,
+        })
     }
 }
 
@@ -690,6 +702,11 @@ fn finish(
     }
     match ending? {
         Ending::ConfigError(error) => Err(error.into()),
+        Ending::BoardFault(name) => bail!(
+            "the run stopped safe: the coil-driver board reported `{name}` and coilbus held the \
+             coils at zero (the reason is in {}/coilbus_link.csv and logs/coilbus.log)",
+            run_dir.display()
+        ),
         Ending::RunComplete | Ending::Signal | Ending::WallTimeLimit => Ok(()),
     }
 }
@@ -717,6 +734,7 @@ fn monitor(
         .map_err(millinav_kit::iox("attach tick"))?;
     let start = Instant::now();
     let mut latest_health: BTreeMap<u32, Heartbeat> = BTreeMap::new();
+    let mut board = BoardView::default();
     loop {
         let mut beating = Vec::new();
         let result = waitset
@@ -746,6 +764,11 @@ fn monitor(
         for beat in heartbeats.health.receive_all()? {
             latest_health.insert(beat.service, beat);
         }
+        for status in heartbeats.coil_status.receive_all()? {
+            if let Some(fault) = board.observe(&status, &mut supervisor.events, &rt.rec) {
+                return Ok(Ending::BoardFault(fault));
+            }
+        }
         if let Some(ending) = supervisor.reap(&rt.node)? {
             return Ok(ending);
         }
@@ -761,6 +784,51 @@ fn monitor(
             );
             return Ok(Ending::WallTimeLimit);
         }
+    }
+}
+
+/// The coil-driver board as coilbus reports it: state and fault changes become supervisor
+/// events (`supervisor_events.csv`, Rerun `supervisor/events`), state, fault and heat go to
+/// Rerun under `health/board`.
+#[derive(Default)]
+struct BoardView {
+    state: Option<u8>,
+    fault: Option<u8>,
+}
+
+impl BoardView {
+    fn observe(
+        &mut self,
+        status: &CoilStatus,
+        events: &mut EventLog,
+        rec: &rerun::RecordingStream,
+    ) -> Option<&'static str> {
+        let mut new_fault = None;
+        if self.state != Some(status.board_state) {
+            self.state = Some(status.board_state);
+            events.record(
+                ServiceId::Coilbus,
+                "board_state",
+                board_state_name(status.board_state),
+            );
+        }
+        if self.fault != Some(status.board_fault) {
+            self.fault = Some(status.board_fault);
+            let name = BoardFault::from_u8(status.board_fault).map_or("invalid", |f| f.name());
+            if status.board_fault != BoardFault::None as u8 {
+                tracing::warn!(fault = name, "coilbus holds the coils at zero: board fault");
+                events.record(ServiceId::Coilbus, "board_fault", name);
+                new_fault = Some(name);
+            }
+        }
+        recording::scalar(rec, "health/board/state", f64::from(status.board_state));
+        recording::scalar(rec, "health/board/fault", f64::from(status.board_fault));
+        recording::scalar(
+            rec,
+            "health/board/thermal_permille",
+            f64::from(status.thermal_permille),
+        );
+        new_fault
     }
 }
 

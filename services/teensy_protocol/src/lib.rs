@@ -492,6 +492,24 @@ pub struct Decoder {
     buffer: [u8; DECODER_CAPACITY],
     len: usize,
     pub counters: DecodeCounters,
+    /// The version byte of the newest well-formed frame (CRC valid) of another protocol version:
+    /// the peer speaks that version.
+    pub foreign_version: Option<u8>,
+}
+
+/// The length of the frame at the start of `bytes` when it is whole and its CRC holds.
+fn whole_frame_len(bytes: &[u8]) -> Option<usize> {
+    if bytes.len() < HEADER_LEN {
+        return None;
+    }
+    let length = u16::from_le_bytes([bytes[4], bytes[5]]) as usize;
+    let total = HEADER_LEN + length + CRC_LEN;
+    if length > MAX_PAYLOAD || bytes.len() < total {
+        return None;
+    }
+    let expected = CRC16.checksum(&bytes[2..HEADER_LEN + length]);
+    let got = u16::from_le_bytes([bytes[total - 2], bytes[total - 1]]);
+    (expected == got).then_some(total)
 }
 
 impl Default for Decoder {
@@ -500,6 +518,7 @@ impl Default for Decoder {
             buffer: [0; DECODER_CAPACITY],
             len: 0,
             counters: DecodeCounters::default(),
+            foreign_version: None,
         }
     }
 }
@@ -558,9 +577,16 @@ impl Decoder {
                 break;
             }
             if available[2] != PROTOCOL_VERSION {
-                // A peer speaking another version (or a false sync): skip this sync byte.
                 self.counters.bad_version += 1;
-                start += 1;
+                // A whole frame whose CRC holds under this layout is a peer speaking another
+                // version (negotiation: the host refuses it by name); anything else is a false
+                // sync. Either way nothing of it is decoded.
+                if let Some(total) = whole_frame_len(available) {
+                    self.foreign_version = Some(available[2]);
+                    start += total;
+                } else {
+                    start += 1;
+                }
                 continue;
             }
             let length = u16::from_le_bytes([available[4], available[5]]) as usize;
@@ -934,6 +960,21 @@ mod tests {
         assert_eq!(decoder.push(&stream), vec![sample_packets()[1].clone()]);
         assert_eq!(decoder.counters.bad_version, 1);
         assert!(decoder.counters.errors() >= 1);
+        // Its CRC holds: a peer speaking version 1, named for the host's refusal.
+        assert_eq!(decoder.foreign_version, Some(1));
+    }
+
+    #[test]
+    fn a_false_sync_with_another_version_byte_names_no_version() {
+        let good = encode(&sample_packets()[1]).to_vec();
+        let mut stream = vec![
+            SYNC[0], SYNC[1], 7, 1, 3, 0, 0, 0, 0, 0, 1, 2, 3, 0xFF, 0xFF,
+        ];
+        stream.extend(&good);
+        let mut decoder = Decoder::new();
+        assert_eq!(decoder.push(&stream), vec![sample_packets()[1].clone()]);
+        assert_eq!(decoder.counters.bad_version, 1);
+        assert_eq!(decoder.foreign_version, None);
     }
 
     #[test]
