@@ -21,8 +21,8 @@
 #![cfg_attr(not(test), no_std)]
 
 use millinav_teensy_protocol::{
-    AckStatus, BoardConfig, BoardState, BoardStatus, ChannelStatus, CoilRating, Message, Packet,
-    MAX_COILS, NOT_MEASURED, STATUS_CLAMPED, STATUS_CONFIG_REFUSED, STATUS_DERATING,
+    AckStatus, BoardConfig, BoardState, BoardStatus, ChannelStatus, CoilRating, Decoder, Message,
+    Packet, MAX_COILS, NOT_MEASURED, STATUS_CLAMPED, STATUS_CONFIG_REFUSED, STATUS_DERATING,
     STATUS_ESTOP_INPUT, STATUS_WATCHDOG,
 };
 
@@ -338,6 +338,25 @@ impl Board {
             self.state = BoardState::ThermalTrip;
             self.zero_outputs();
         }
+    }
+
+    /// Feeds bytes from the host link through `decoder` into the board: every whole, valid frame
+    /// is handled at `now_ms` and its reply (an `Ack`) handed to `reply`; frames of the wrong
+    /// length, CRC, version or payload are dropped by the decoder and counted in `rx_errors`
+    /// (reported in `Status`). The firmware's receive path.
+    pub fn receive(
+        &mut self,
+        decoder: &mut Decoder,
+        bytes: &[u8],
+        now_ms: u64,
+        mut reply: impl FnMut(Packet),
+    ) {
+        decoder.push_with(bytes, |packet| {
+            if let Some(answer) = self.handle(&packet, now_ms) {
+                reply(answer);
+            }
+        });
+        self.rx_errors = decoder.counters.errors().min(u64::from(u32::MAX)) as u32;
     }
 
     /// Whether the outputs drive now: armed and the watchdog fed.

@@ -1,6 +1,6 @@
 use millinav_teensy_protocol::{
     decode_one, encode, BoardConfig, BoardState, CoilRating, CoilValues, Message, Packet,
-    STATUS_WATCHDOG,
+    STATUS_CLAMPED, STATUS_WATCHDOG,
 };
 
 use super::*;
@@ -253,4 +253,53 @@ fn status_frames_round_trip_through_the_wire() {
     assert_eq!(decode_one(&bytes), Some(status));
     let cfg = config();
     assert_eq!(decode_one(&encode(&cfg)), Some(cfg));
+}
+
+#[test]
+fn bad_frames_are_dropped_counted_and_reported() {
+    let mut b = armed();
+    let mut decoder = millinav_teensy_protocol::Decoder::new();
+    let good = encode(&set([1000; CHANNELS])).to_vec();
+    let mut bad_crc = good.clone();
+    let last = bad_crc.len() - 1;
+    bad_crc[last] ^= 0xFF;
+    let mut bad_version = good.clone();
+    bad_version[2] = 9;
+    let mut bad_length = good.clone();
+    bad_length[4] = 0xFF;
+    bad_length[5] = 0xFF;
+    let wrong_count = encode(&frame(Message::SetCurrents {
+        frame_seq: 1,
+        flags: 0,
+        currents_ma: CoilValues::new(&[1000; CHANNELS + 1]).unwrap(),
+    }))
+    .to_vec();
+    let out_of_range = encode(&set([i32::MAX, i32::MIN, 0, 0])).to_vec();
+    let mut acks = Vec::new();
+    for bytes in [&bad_crc, &bad_version, &bad_length] {
+        b.receive(&mut decoder, bytes, 1, |p| acks.push(p));
+    }
+    assert!(acks.is_empty(), "a damaged frame was handled: {acks:?}");
+    assert!(b.rx_errors >= 3, "rx_errors {}", b.rx_errors);
+    // A frame for another coil count is refused and drives nothing.
+    b.receive(&mut decoder, &wrong_count, 2, |p| acks.push(p));
+    assert_eq!(ack_status(acks.pop()), AckStatus::RejectedCoilCount as u8);
+    assert!(b.outputs().iter().all(|o| o.duty == 0));
+    // Out-of-range currents are clamped to the coil's limit.
+    b.receive(&mut decoder, &out_of_range, 3, |p| acks.push(p));
+    assert_eq!(ack_status(acks.pop()), AckStatus::Clamped as u8);
+    assert_eq!(&b.driven_ma()[..2], &[6_000, -6_000]);
+    // The counts travel in Status.
+    let status = match b.status().message {
+        Message::Status(st) => st,
+        other => panic!("{other:?}"),
+    };
+    assert!(status.rx_errors >= 3);
+    assert_eq!(status.flags & STATUS_CLAMPED, STATUS_CLAMPED);
+    // Arm while e-stopped (pin held): refused, still latched.
+    b.tick(4, true, None);
+    b.receive(&mut decoder, &encode(&frame(Message::Arm)), 5, |p| {
+        acks.push(p)
+    });
+    assert_eq!(b.state(), BoardState::EStop);
 }

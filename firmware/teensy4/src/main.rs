@@ -301,10 +301,8 @@ fn main() -> ! {
                 let mut buffer = [0u8; 64];
                 if let Ok(n) = serial.read(&mut buffer) {
                     let mut replies = heapless_replies::Replies::new();
-                    decoder.push_with(&buffer[..n], |packet| {
-                        if let Some(reply) = board_logic.handle(&packet, now_ms) {
-                            replies.push(reply);
-                        }
+                    board_logic.receive(&mut decoder, &buffer[..n], now_ms, |reply| {
+                        replies.push(reply)
                     });
                     for reply in replies.iter() {
                         send(&mut device, &mut serial, &encode(reply));
@@ -314,7 +312,6 @@ fn main() -> ! {
                 usb_configured = false;
             }
         }
-        board_logic.rx_errors = decoder.counters.errors().min(u64::from(u32::MAX)) as u32;
         board_logic.tick(now_ms, estop.is_set(), None);
         let driving = board_logic.driving();
         bridges.apply(&board_logic.outputs(), driving);
