@@ -390,7 +390,9 @@ pub fn metric_bars(
     Ok(())
 }
 
-/// Tracking error vs time and the path in the plane, one trace per controller.
+/// Small multiples, one column per controller (three per row), with shared axes: the path in the
+/// plane over the rig's whole canal mask (reference in black), and below it the tracking error
+/// against time. Each panel names its controller and RMSE.
 pub fn traces_figure(
     traces: &[(String, Vec<TraceRow>)],
     reference: &millinav_control::reference::Reference,
@@ -398,34 +400,48 @@ pub fn traces_figure(
     title: &str,
     path: &Path,
 ) -> Res {
-    let root = BitMapBackend::new(path, (1400, 600)).into_drawing_area();
+    const COLUMNS: usize = 3;
+    const PATH_PANEL_PX: u32 = 460;
+    const ERROR_PANEL_PX: u32 = 230;
+    const TITLE_PX: u32 = 40;
+    let n = traces.len().max(1);
+    let columns = n.min(COLUMNS);
+    let rows = n.div_ceil(COLUMNS);
+    let width = 500 * columns as u32;
+    let height = TITLE_PX + rows as u32 * (PATH_PANEL_PX + ERROR_PANEL_PX);
+    let root = BitMapBackend::new(path, (width, height)).into_drawing_area();
     root.fill(&WHITE)?;
-    let (left, right) = root.split_horizontally(600);
+    let (header, body) = root.split_vertically(TITLE_PX);
+    header.titled(
+        &format!("{title}: paths over the canal, tracking error (shared axes)"),
+        ("sans-serif", 24),
+    )?;
+
+    // The whole canal (and the reference) sets the plane's extent.
+    let geometry = canal.geometry();
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for p in reference.waypoints() {
-        x0 = x0.min(p.x * 1e3);
-        x1 = x1.max(p.x * 1e3);
-        y0 = y0.min(p.y * 1e3);
-        y1 = y1.max(p.y * 1e3);
+    let mut extend = |x: f64, y: f64| {
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y0 = y0.min(y);
+        y1 = y1.max(y);
+    };
+    let width_px = canal.width() as usize;
+    for (k, _) in canal.canal_flags().iter().enumerate().filter(|(_, c)| **c) {
+        let p = geometry.px_to_world((k % width_px) as f64 + 0.5, (k / width_px) as f64 + 0.5);
+        extend(p.x * 1e3, p.y * 1e3);
     }
-    let pad = 5.0;
-    let mut plane = ChartBuilder::on(&left)
-        .caption(format!("{title}: paths"), ("sans-serif", 20))
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(45)
-        .build_cartesian_2d(x0 - pad..x1 + pad, y0 - pad..y1 + pad)?;
-    plane
-        .configure_mesh()
-        .x_desc("x (mm)")
-        .y_desc("y (mm)")
-        .draw()?;
-    // The rig's canal underneath, as the camera sees it from the top.
-    let cell_mm = 0.5;
-    let canal: Vec<Rectangle<(f64, f64)>> = (0..((x1 - x0 + 2.0 * pad) / cell_mm) as usize)
+    for p in reference.waypoints() {
+        extend(p.x * 1e3, p.y * 1e3);
+    }
+    let pad = 2.0;
+    let (x0, x1, y0, y1) = (x0 - pad, x1 + pad, y0 - pad, y1 + pad);
+    // Square data cells, at most ~160 across the plane, at least one camera pixel.
+    let cell_mm = ((x1 - x0).max(y1 - y0) / 160.0).max(geometry.mm_per_px);
+    let canal_cells: Vec<(f64, f64)> = (0..((x1 - x0) / cell_mm).ceil() as usize)
         .flat_map(|i| {
-            (0..((y1 - y0 + 2.0 * pad) / cell_mm) as usize)
-                .map(move |j| (x0 - pad + i as f64 * cell_mm, y0 - pad + j as f64 * cell_mm))
+            (0..((y1 - y0) / cell_mm).ceil() as usize)
+                .map(move |j| (x0 + i as f64 * cell_mm, y0 + j as f64 * cell_mm))
         })
         .filter(|&(x, y)| {
             canal.contains(&nalgebra::Vector2::new(
@@ -433,77 +449,95 @@ pub fn traces_figure(
                 (y + 0.5 * cell_mm) * 1e-3,
             ))
         })
-        .map(|(x, y)| {
-            Rectangle::new(
-                [(x, y), (x + cell_mm, y + cell_mm)],
-                RGBColor(225, 215, 200).filled(),
-            )
+        .collect();
+
+    let errors: Vec<Vec<(f64, f64)>> = traces
+        .iter()
+        .map(|(_, trace)| {
+            trace
+                .iter()
+                .map(|r| {
+                    let e = (r.position_m - reference.sample(r.time_s).position_m).norm() * 1e3;
+                    (r.time_s, e)
+                })
+                .collect()
         })
         .collect();
-    plane.draw_series(canal)?;
-    plane
-        .draw_series(LineSeries::new(
-            reference.waypoints().iter().map(|p| (p.x * 1e3, p.y * 1e3)),
-            BLACK.stroke_width(2),
-        ))?
-        .label("reference")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 15, y)], BLACK));
     let t_max = traces
         .iter()
         .flat_map(|(_, t)| t.last().map(|r| r.time_s))
         .fold(1.0f64, f64::max);
-    let mut e_max = 1.0f64;
-    for (name, trace) in traces {
+    // Shared error axis: the largest 99th percentile over the controllers, capped at 20 mm.
+    let e_cap = errors
+        .iter()
+        .map(|e| {
+            let mut v: Vec<f64> = e.iter().map(|(_, e)| *e).collect();
+            v.sort_by(f64::total_cmp);
+            v.get(v.len().saturating_sub(1) * 99 / 100)
+                .copied()
+                .unwrap_or(0.0)
+        })
+        .fold(1.0f64, f64::max)
+        .min(20.0)
+        * 1.05;
+
+    let cells = body.split_evenly((rows, columns));
+    for (k, ((name, trace), error)) in traces.iter().zip(&errors).enumerate() {
+        let cell = &cells[(k / COLUMNS) * columns + k % COLUMNS];
+        let (top, bottom) = cell.split_vertically(PATH_PANEL_PX);
         let color = color_of(name);
+        let rmse =
+            (error.iter().map(|(_, e)| e * e).sum::<f64>() / error.len().max(1) as f64).sqrt();
+        let worst = error.iter().map(|(_, e)| *e).fold(0.0, f64::max);
+        let mut plane = ChartBuilder::on(&top)
+            .caption(format!("{name}: RMSE {rmse:.2} mm"), ("sans-serif", 18))
+            .margin(8)
+            .x_label_area_size(30)
+            .y_label_area_size(40)
+            .build_cartesian_2d(x0..x1, y0..y1)?;
         plane
-            .draw_series(LineSeries::new(
-                trace
-                    .iter()
-                    .map(|r| (r.position_m.x * 1e3, r.position_m.y * 1e3)),
-                color,
-            ))?
-            .label(name.clone())
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 15, y)], color));
-        for r in trace {
-            e_max = e_max.max((r.position_m - reference.sample(r.time_s).position_m).norm() * 1e3);
-        }
+            .configure_mesh()
+            .disable_mesh()
+            .x_desc("x (mm)")
+            .y_desc("y (mm)")
+            .draw()?;
+        plane.draw_series(canal_cells.iter().map(|&(x, y)| {
+            Rectangle::new(
+                [(x, y), (x + cell_mm, y + cell_mm)],
+                RGBColor(225, 215, 200).filled(),
+            )
+        }))?;
+        plane.draw_series(LineSeries::new(
+            reference.waypoints().iter().map(|p| (p.x * 1e3, p.y * 1e3)),
+            BLACK.stroke_width(2),
+        ))?;
+        plane.draw_series(LineSeries::new(
+            trace
+                .iter()
+                .map(|r| (r.position_m.x * 1e3, r.position_m.y * 1e3)),
+            color,
+        ))?;
+        let clipped = if worst > e_cap {
+            format!(" (max {worst:.1} mm, clipped)")
+        } else {
+            String::new()
+        };
+        let mut chart = ChartBuilder::on(&bottom)
+            .caption(format!("error{clipped}"), ("sans-serif", 14))
+            .margin(8)
+            .x_label_area_size(30)
+            .y_label_area_size(40)
+            .build_cartesian_2d(0.0..t_max, 0.0..e_cap)?;
+        chart
+            .configure_mesh()
+            .x_desc("time (s)")
+            .y_desc("error (mm)")
+            .draw()?;
+        chart.draw_series(LineSeries::new(
+            error.iter().map(|&(t, e)| (t, e.min(e_cap))),
+            color,
+        ))?;
     }
-    plane
-        .configure_series_labels()
-        .background_style(WHITE)
-        .border_style(BLACK)
-        .draw()?;
-    let mut errors = ChartBuilder::on(&right)
-        .caption(format!("{title}: tracking error"), ("sans-serif", 20))
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(45)
-        .build_cartesian_2d(0.0..t_max, 0.0..e_max.min(20.0) * 1.05)?;
-    errors
-        .configure_mesh()
-        .x_desc("time (s)")
-        .y_desc("error (mm)")
-        .draw()?;
-    for (name, trace) in traces {
-        let color = color_of(name);
-        errors
-            .draw_series(LineSeries::new(
-                trace.iter().map(|r| {
-                    (
-                        r.time_s,
-                        (r.position_m - reference.sample(r.time_s).position_m).norm() * 1e3,
-                    )
-                }),
-                color,
-            ))?
-            .label(name.clone())
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 15, y)], color));
-    }
-    errors
-        .configure_series_labels()
-        .background_style(WHITE)
-        .border_style(BLACK)
-        .draw()?;
     root.present()?;
     Ok(())
 }
