@@ -24,12 +24,7 @@ const RUN_TIMEOUT: Duration = Duration::from_secs(240);
 
 /// A circle in the right atrium held for `duration_s` with `extra` tables appended.
 fn circle(duration_s: f64, extra: &str) -> String {
-    let points: Vec<[f64; 2]> = (0..=24)
-        .map(|i| {
-            let a = i as f64 / 24.0 * std::f64::consts::TAU;
-            [-16.0 + 5.0 * a.cos(), 10.0 + 5.0 * a.sin()]
-        })
-        .collect();
+    let points = millinav_tests::atrium_circle_mm();
     scenario_text(
         duration_s,
         &points,

@@ -41,12 +41,7 @@ fn max_current_a(rig: &str) -> f64 {
 
 /// A circle in the right atrium: the robot stays in the canal however long the run is.
 fn circle_scenario(duration_s: f64, seed: u64) -> String {
-    let points: Vec<[f64; 2]> = (0..=24)
-        .map(|i| {
-            let a = i as f64 / 24.0 * std::f64::consts::TAU;
-            [-16.0 + 5.0 * a.cos(), 10.0 + 5.0 * a.sin()]
-        })
-        .collect();
+    let points = millinav_tests::atrium_circle_mm();
     scenario_text(
         duration_s,
         &points,

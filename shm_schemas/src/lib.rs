@@ -513,6 +513,8 @@ pub enum BoardFault {
     ThermalTrip = 3,
     /// The board's telemetry disagrees with what coilbus commanded (state, clamps, currents).
     TelemetryDisagrees = 4,
+    /// The board refused the configuration coilbus sent (outside its hardware limits).
+    ConfigRefused = 5,
 }
 
 impl BoardFault {
@@ -523,6 +525,7 @@ impl BoardFault {
             2 => Self::EStop,
             3 => Self::ThermalTrip,
             4 => Self::TelemetryDisagrees,
+            5 => Self::ConfigRefused,
             _ => return None,
         })
     }
@@ -534,6 +537,7 @@ impl BoardFault {
             Self::EStop => "estop",
             Self::ThermalTrip => "thermal_trip",
             Self::TelemetryDisagrees => "telemetry_disagrees",
+            Self::ConfigRefused => "config_refused",
         }
     }
 }

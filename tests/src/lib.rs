@@ -488,3 +488,14 @@ impl PaperCell {
         millinav_experiments::metrics(trace, &self.reference, resistance)
     }
 }
+
+/// Waypoints of a 5 mm circle in the paper rig's right atrium (centre (−16, 10) mm): a robot that
+/// follows it stays in the canal however long the run is.
+pub fn atrium_circle_mm() -> Vec<[f64; 2]> {
+    (0..=24)
+        .map(|i| {
+            let a = i as f64 / 24.0 * std::f64::consts::TAU;
+            [-16.0 + 5.0 * a.cos(), 10.0 + 5.0 * a.sin()]
+        })
+        .collect()
+}

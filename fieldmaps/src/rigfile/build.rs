@@ -161,6 +161,13 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
         }
     };
     require_positive(ctx, "electromagnet.max_total_power_w", em.max_total_power_w)?;
+    let driver_supply_v = em.driver_supply_v.unwrap_or_else(|| {
+        coils
+            .iter()
+            .map(|c| c.max_current_a * c.resistance_ohm)
+            .fold(0.0, f64::max)
+    });
+    require_positive(ctx, "electromagnet.driver_supply_v", driver_supply_v)?;
     let allocation_coils = build_allocation(ctx, &em.allocation_coils, &coils)?;
     let camera = build_camera(ctx, &file.camera)?;
     let phantom = build_phantom(ctx, &file.phantom, &camera)?;
@@ -181,6 +188,7 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
         twin_field_calibration,
         twin_coil_field,
         max_total_power_w: em.max_total_power_w,
+        driver_supply_v,
         allocation_coils,
         camera,
         phantom,

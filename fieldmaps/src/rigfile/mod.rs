@@ -265,6 +265,8 @@ pub struct Rig {
     pub twin_coil_field: RigCoilField,
     /// Total ohmic power over all coils, W.
     pub max_total_power_w: f64,
+    /// The coil drivers' supply voltage, V: the board turns a current into PWM duty |I|·R / V.
+    pub driver_supply_v: f64,
     /// Indices (into `coils`) the allocation may drive, in the file's order.
     pub allocation_coils: Vec<usize>,
     pub camera: RigCamera,

@@ -31,6 +31,9 @@ pub(crate) struct ElectromagnetSection {
     #[serde(default)]
     pub twin_field_model: Option<String>,
     pub max_total_power_w: f64,
+    /// The coil drivers' supply voltage, V (default: the largest I_max · R over the coils).
+    #[serde(default)]
+    pub driver_supply_v: Option<f64>,
     pub allocation_coils: Vec<String>,
 }
 

@@ -9,7 +9,7 @@ use shm_schemas::{BoardFault, MAX_COILS};
 
 use crate::protocol::{
     AckStatus, BoardState, BoardStatus, NOT_MEASURED, PROTOCOL_VERSION, STATUS_CLAMPED,
-    STATUS_DERATING, STATUS_WATCHDOG,
+    STATUS_CONFIG_REFUSED, STATUS_DERATING, STATUS_WATCHDOG,
 };
 
 /// How far telemetry may stray from the command before coilbus calls it a disagreement.
@@ -140,6 +140,15 @@ impl BoardMonitor {
             .unwrap_or(0);
         if self.fault.is_some() {
             return None;
+        }
+        if status.flags & STATUS_CONFIG_REFUSED != 0 {
+            return self.latch(
+                BoardFault::ConfigRefused,
+                "the board refused the configuration coilbus sent (channel count, supply \
+                 voltage, watchdog or a coil rating outside its hardware limits: \
+                 firmware/FIRMWARE.md); nothing is driven"
+                    .into(),
+            );
         }
         match state {
             Some(BoardState::Armed) => self.armed_seen = true,
@@ -451,6 +460,17 @@ mod tests {
             assert!(m.on_status(&st).is_none());
         }
         assert!(m.fault().is_none());
+    }
+
+    #[test]
+    fn a_refused_configuration_latches() {
+        let mut m = BoardMonitor::new(2, &[6.0, 6.0], TelemetryTolerance::default());
+        let st = status(
+            BoardState::Unconfigured,
+            STATUS_CONFIG_REFUSED,
+            &[(0, 0, NOT_MEASURED), (0, 0, NOT_MEASURED)],
+        );
+        assert_eq!(m.on_status(&st).unwrap().kind, BoardFault::ConfigRefused);
     }
 
     #[test]

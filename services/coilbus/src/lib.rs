@@ -56,6 +56,9 @@ pub struct CoilbusConfig {
     pub tick_ms: u64,
     /// `[coilbus.telemetry]`: how far the board's telemetry may stray from the command.
     pub telemetry: TelemetryTolerance,
+    /// The watchdog the board is configured with, ms: no accepted command for this long and
+    /// the board turns its outputs off (it accepts 20–2000 ms).
+    pub board_watchdog_ms: u16,
 }
 
 impl Default for CoilbusConfig {
@@ -69,6 +72,7 @@ impl Default for CoilbusConfig {
             command_deadline_ms: deadlines::COMMAND.as_millis() as u64,
             tick_ms: 20,
             telemetry: TelemetryTolerance::default(),
+            board_watchdog_ms: 250,
         }
     }
 }
@@ -393,6 +397,14 @@ pub fn prepare(scenario: &Scenario) -> Result<CoilbusSetup, ConfigError> {
     positive("command_deadline_ms", config.command_deadline_ms)?;
     // A zero tick would make the loop spin.
     positive("tick_ms", config.tick_ms)?;
+    // The board's own range (firmware/core HardwareLimits::standard).
+    if !(20..=2000).contains(&config.board_watchdog_ms) {
+        return Err(ConfigError::new(format!(
+            "{} must be 20 to 2000 ms (what the board accepts), got {}",
+            field("board_watchdog_ms"),
+            config.board_watchdog_ms
+        )));
+    }
     let telemetry = &config.telemetry;
     if !(telemetry.current_a.is_finite() && telemetry.current_a > 0.0) {
         return Err(ConfigError::new(format!(
@@ -464,7 +476,7 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CoilbusSetup) -> anyho
     let commands = Inbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
     let status_out = Outbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
     let mut link = SerialLink::new(port_path.clone(), config.baud);
-    link.set_board_config(board_config(&limits, coil_count));
+    link.set_board_config(board_config(&limits, coil_count, config.board_watchdog_ms));
     let mut link_log = RunLogWriter::<LinkEventRow>::in_run_dir(&rt.env.run_dir)
         .context("opening the link log")?;
     let mut bus = CoilBus::new(
@@ -511,12 +523,15 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CoilbusSetup) -> anyho
     Ok(())
 }
 
-/// Board watchdog the host asks for, ms (the emulated and the real board zero on it).
-const BOARD_WATCHDOG_MS: u16 = 250;
 /// The board's `Config` from the rig's ratings: each coil's resistance, current limit (as
-/// lowered for this run), continuous current and I²t heat budget, and the supply that drives
-/// the largest limit through its coil (I·R, at least the board's 12 V minimum).
-pub fn board_config(limits: &CurrentLimits, coil_count: usize) -> protocol::BoardConfig {
+/// lowered for this run), continuous current and I²t heat budget, the drivers' supply voltage
+/// (`electromagnet.driver_supply_v`), and the board's watchdog. The board refuses (and says so
+/// in `Status`) what does not fit its hardware.
+pub fn board_config(
+    limits: &CurrentLimits,
+    coil_count: usize,
+    watchdog_ms: u16,
+) -> protocol::BoardConfig {
     let n = coil_count.min(MAX_COILS);
     let to_milli = |v: f64| (v * 1000.0).round().clamp(1.0, u32::MAX as f64) as u32;
     let ratings: Vec<protocol::CoilRating> = (0..n)
@@ -530,18 +545,9 @@ pub fn board_config(limits: &CurrentLimits, coil_count: usize) -> protocol::Boar
             }
         })
         .collect();
-    let supply_v = (0..n)
-        .map(|k| limits.max_current_a[k] * limits.coil_resistance_ohm[k])
-        .fold(12.0, f64::max)
-        .min(80.0);
-    protocol::BoardConfig::new(
-        (supply_v * 1000.0).round() as u32,
-        BOARD_WATCHDOG_MS,
-        &ratings,
-    )
-    .unwrap_or_else(|| {
-        protocol::BoardConfig::new(12_000, BOARD_WATCHDOG_MS, &[]).expect("no coils fit")
-    })
+    // `ratings` holds at most MAX_COILS coils, so the block always fits.
+    protocol::BoardConfig::new(to_milli(limits.supply_v), watchdog_ms, &ratings)
+        .unwrap_or_else(|| protocol::BoardConfig::new(12_000, watchdog_ms, &[]).expect("no coils"))
 }
 
 /// Reopens a lost link, counts the board's acknowledgements and logs link changes.
@@ -576,7 +582,9 @@ fn service_link(
         // tripped one stays latched as it is.
         if matches!(
             fault.kind,
-            BoardFault::TelemetryDisagrees | BoardFault::ProtocolVersion
+            BoardFault::TelemetryDisagrees
+                | BoardFault::ProtocolVersion
+                | BoardFault::ConfigRefused
         ) {
             link.send(&Message::Disarm);
         }

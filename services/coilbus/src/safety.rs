@@ -16,6 +16,8 @@ pub struct CurrentLimits {
     /// (what the board's I²t protection is configured with).
     pub continuous_current_a: [f64; MAX_COILS],
     pub thermal_budget_a2s: [f64; MAX_COILS],
+    /// The drivers' supply voltage, V.
+    pub supply_v: f64,
     /// Sum of I²R over all coils.
     pub max_total_power_w: f64,
 }
@@ -28,6 +30,7 @@ impl CurrentLimits {
             coil_resistance_ohm: [coil_resistance_ohm; MAX_COILS],
             continuous_current_a: [max_current_a; MAX_COILS],
             thermal_budget_a2s: [max_current_a * max_current_a * 10.0; MAX_COILS],
+            supply_v: max_current_a * coil_resistance_ohm,
             max_total_power_w,
         }
     }
@@ -35,6 +38,7 @@ impl CurrentLimits {
     /// The rig's per-coil ratings and total power.
     pub fn from_rig(rig: &Rig) -> Self {
         let mut limits = Self::uniform(0.0, 0.0, rig.max_total_power_w);
+        limits.supply_v = rig.driver_supply_v;
         for (i, coil) in rig.coils.iter().take(MAX_COILS).enumerate() {
             limits.max_current_a[i] = coil.max_current_a;
             limits.coil_resistance_ohm[i] = coil.resistance_ohm;

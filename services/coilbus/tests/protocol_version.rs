@@ -49,7 +49,7 @@ fn a_board_of_another_protocol_version_is_refused_by_name() {
     let limits = CurrentLimits::uniform(6.0, 10.0, 2160.0);
 
     let mut link = SerialLink::new(path.into(), 115_200);
-    link.set_board_config(millinav_coilbus::board_config(&limits, 3));
+    link.set_board_config(millinav_coilbus::board_config(&limits, 3, 250));
     link.set_arm_wanted(true);
     let deadline = Instant::now() + Duration::from_secs(5);
     let mut seen = None;

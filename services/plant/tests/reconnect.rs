@@ -1,6 +1,9 @@
 //! coilbus's serial link survives the port vanishing and coming back at the same path (the
 //! emulated Teensy's pty is dropped and a new one created, as when the board is re-plugged).
 
+mod common;
+
+use common::armed_link;
 use std::time::{Duration, Instant};
 
 use fieldmaps::coils::COIL_COUNT;
@@ -15,22 +18,6 @@ fn command(frame_seq: u64, amps: f64) -> Message {
         flags: 0,
         currents_ma: CoilValues::new(&[amps_to_ma(amps); COIL_COUNT]).unwrap(),
     }
-}
-
-/// A link that configures the board for `channels` paper-rated coils (6 A, 10 Ω) with a
-/// `watchdog_ms` board watchdog and arms it.
-fn armed_link(link_path: &std::path::Path, channels: usize, watchdog_ms: u16) -> SerialLink {
-    let mut link = SerialLink::new(link_path.to_owned(), 115_200);
-    let limits = millinav_coilbus::safety::CurrentLimits::uniform(6.0, 10.0, 2160.0);
-    let mut config = millinav_coilbus::board_config(&limits, channels);
-    config.watchdog_ms = watchdog_ms;
-    link.set_board_config(config);
-    link.set_arm_wanted(true);
-    assert!(
-        link.wait_armed(Duration::from_secs(5)),
-        "the board never armed"
-    );
-    link
 }
 
 /// Keeps (re)opening and sending `frame_seq` until the Teensy applied it.

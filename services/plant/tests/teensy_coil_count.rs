@@ -2,6 +2,9 @@
 //! channels: a frame for another count is refused with `Ack` status `RejectedCoilCount`,
 //! logged and counted, and drives nothing (outputs unchanged, the watchdog is not fed).
 
+mod common;
+
+use common::armed_link;
 use std::time::{Duration, Instant};
 
 use millinav_coilbus::link::SerialLink;
@@ -16,22 +19,6 @@ fn set_currents(frame_seq: u64, amps: f64, coils: usize) -> Message {
         flags: 0,
         currents_ma: CoilValues::new(&vec![amps_to_ma(amps); coils]).unwrap(),
     }
-}
-
-/// A link that configures the board for `channels` paper-rated coils (6 A, 10 Ω) with a
-/// `watchdog_ms` board watchdog and arms it.
-fn armed_link(link_path: &std::path::Path, channels: usize, watchdog_ms: u16) -> SerialLink {
-    let mut link = SerialLink::new(link_path.to_owned(), 115_200);
-    let limits = millinav_coilbus::safety::CurrentLimits::uniform(6.0, 10.0, 2160.0);
-    let mut config = millinav_coilbus::board_config(&limits, channels);
-    config.watchdog_ms = watchdog_ms;
-    link.set_board_config(config);
-    link.set_arm_wanted(true);
-    assert!(
-        link.wait_armed(Duration::from_secs(5)),
-        "the board never armed"
-    );
-    link
 }
 
 /// Sends `message` until the board acknowledges it (the pty may need a moment to open);

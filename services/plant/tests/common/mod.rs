@@ -60,3 +60,22 @@ pub fn currents(value: f64, coil: usize) -> [f64; COIL_COUNT] {
     c[coil % COIL_COUNT] = value;
     c
 }
+
+/// A link that configures the board for `channels` paper-rated coils (6 A, 10 Ω) with a
+/// `watchdog_ms` board watchdog and arms it.
+pub fn armed_link(
+    link_path: &std::path::Path,
+    channels: usize,
+    watchdog_ms: u16,
+) -> millinav_coilbus::link::SerialLink {
+    let mut link = millinav_coilbus::link::SerialLink::new(link_path.to_owned(), 115_200);
+    let limits = millinav_coilbus::safety::CurrentLimits::uniform(6.0, 10.0, 2160.0);
+    let config = millinav_coilbus::board_config(&limits, channels, watchdog_ms);
+    link.set_board_config(config);
+    link.set_arm_wanted(true);
+    assert!(
+        link.wait_armed(std::time::Duration::from_secs(5)),
+        "the board never armed"
+    );
+    link
+}
