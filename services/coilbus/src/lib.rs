@@ -368,16 +368,6 @@ fn log_output(rec: &millinav_kit::rerun::RecordingStream, out: &Output, bus: &Co
         "coilbus/watchdog_tripped",
         f64::from(bus.status.watchdog_tripped.raw()),
     );
-    let board = &bus.status;
-    if board.board_state != BOARD_STATE_UNKNOWN {
-        recording::scalar(rec, "coilbus/board/state", f64::from(board.board_state));
-    }
-    recording::scalar(rec, "coilbus/board/fault", f64::from(board.board_fault));
-    recording::scalar(
-        rec,
-        "coilbus/board/thermal_permille",
-        f64::from(board.thermal_permille),
-    );
 }
 
 /// Parses and validates the `[coilbus]` table. The serial port is not checked here: the
