@@ -22,6 +22,33 @@ use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
+/// The grid of coil maps, centred on the workspace (z = 0 is the control plane).
+#[derive(Debug, Clone, clap::Args)]
+pub struct MapGridArgs {
+    /// Map grid spacing, mm (shrunk slightly if needed so nodes land on the faces).
+    #[arg(long, default_value_t = 2.0)]
+    pub spacing_mm: f64,
+    /// Half-extent of the map grid along x and y, mm (the paper's workspace is ±50 mm).
+    #[arg(long, default_value_t = 50.0)]
+    pub half_xy_mm: f64,
+    /// Half-extent of the map grid along z, mm.
+    #[arg(long, default_value_t = 8.0)]
+    pub half_z_mm: f64,
+}
+
+impl MapGridArgs {
+    pub fn spec(&self) -> anyhow::Result<GridSpec> {
+        Ok(GridSpec::centered(
+            [
+                self.half_xy_mm * 1e-3,
+                self.half_xy_mm * 1e-3,
+                self.half_z_mm * 1e-3,
+            ],
+            self.spacing_mm * 1e-3,
+        )?)
+    }
+}
+
 /// Arguments of `fieldgen coils`.
 #[derive(Debug, clap::Args)]
 pub struct CoilsArgs {
@@ -32,15 +59,8 @@ pub struct CoilsArgs {
     /// directory (`twin_field_model`, else `field_model`; fieldmaps/coils for the paper's rig).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Grid spacing, mm (shrunk slightly if needed so nodes land on the faces).
-    #[arg(long, default_value_t = 2.0)]
-    pub spacing_mm: f64,
-    /// Half-extent of the grid along x and y, mm (the workspace is ±50 mm).
-    #[arg(long, default_value_t = 50.0)]
-    pub half_xy_mm: f64,
-    /// Half-extent of the grid along z, mm (z = 0 is the control plane).
-    #[arg(long, default_value_t = 8.0)]
-    pub half_z_mm: f64,
+    #[command(flatten)]
+    pub grid: MapGridArgs,
     /// Do not regenerate: verify the existing maps and run the magpylib cross-check.
     #[arg(long)]
     pub check: bool,
@@ -164,18 +184,11 @@ pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
         ),
     };
     if !args.check {
-        let grid = GridSpec::centered(
-            [
-                args.half_xy_mm * 1e-3,
-                args.half_xy_mm * 1e-3,
-                args.half_z_mm * 1e-3,
-            ],
-            args.spacing_mm * 1e-3,
-        )?;
+        let grid = args.grid.spec()?;
         let maps = generate(&system, grid, args.threads.max(1))?;
         let command = format!(
             "fieldgen coils --spacing-mm {} --half-xy-mm {} --half-z-mm {}",
-            args.spacing_mm, args.half_xy_mm, args.half_z_mm
+            args.grid.spacing_mm, args.grid.half_xy_mm, args.grid.half_z_mm
         );
         let description = if paper_case {
             "Current-normalized field and gradient of the 12 paper-rig coils (closed-form \

@@ -214,7 +214,9 @@ const W_NAMES: &[&str] = &[
     "velocity[k]",
 ];
 
-fn split(line: &str) -> Vec<&str> {
+/// The cells of a text-table row: comma-, semicolon- or whitespace-separated (COMSOL, Fluent,
+/// Maxwell and spreadsheet exports all occur).
+pub(crate) fn split(line: &str) -> Vec<&str> {
     if line.contains(',') {
         line.split(',').map(str::trim).collect()
     } else if line.contains(';') {

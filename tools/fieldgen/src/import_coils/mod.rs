@@ -463,15 +463,9 @@ pub struct ImportCoilsArgs {
     /// Take the map grid from the maps in this directory (e.g. fieldmaps/coils).
     #[arg(long)]
     pub like: Option<PathBuf>,
-    /// Map grid spacing, mm (without --like).
-    #[arg(long, default_value_t = 2.0)]
-    pub spacing_mm: f64,
-    /// Half-extent of the map grid along x and y, mm (without --like).
-    #[arg(long, default_value_t = 50.0)]
-    pub half_xy_mm: f64,
-    /// Half-extent of the map grid along z, mm (without --like).
-    #[arg(long, default_value_t = 8.0)]
-    pub half_z_mm: f64,
+    /// The map grid (without --like).
+    #[command(flatten)]
+    pub grid: crate::coils::MapGridArgs,
     /// Length unit of files that do not state one (m, cm, mm).
     #[arg(long)]
     pub length_unit: Option<String>,
@@ -546,14 +540,7 @@ pub fn run(args: &ImportCoilsArgs) -> anyhow::Result<()> {
     }
     let grid = match &args.like {
         Some(dir) => *CoilFieldMaps::load(dir)?.grid(),
-        None => GridSpec::centered(
-            [
-                args.half_xy_mm * 1e-3,
-                args.half_xy_mm * 1e-3,
-                args.half_z_mm * 1e-3,
-            ],
-            args.spacing_mm * 1e-3,
-        )?,
+        None => args.grid.spec()?,
     };
     let hints = UnitHints {
         length: args.length_unit.clone(),

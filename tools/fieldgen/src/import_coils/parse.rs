@@ -7,6 +7,7 @@ use std::collections::HashMap;
 use nalgebra::{Matrix3, Vector3};
 
 use super::ImportCoilError;
+use crate::import::split as split_row;
 
 /// One coil's samples in SI (field T at the export's current, gradient T/m).
 #[derive(Debug, Clone, PartialEq)]
@@ -168,16 +169,6 @@ fn split_header(line: &str) -> Vec<String> {
         }
     }
     names
-}
-
-fn split_row(line: &str) -> Vec<&str> {
-    if line.contains(',') {
-        line.split(',').map(str::trim).collect()
-    } else if line.contains(';') {
-        line.split(';').map(str::trim).collect()
-    } else {
-        line.split_whitespace().collect()
-    }
 }
 
 fn is_data(line: &str) -> bool {
