@@ -15,6 +15,8 @@ if [ "$(cargo machete --version 2>/dev/null)" != "$CARGO_MACHETE_VERSION" ]; the
 fi
 cargo machete
 cargo clippy --release --workspace --all-targets --locked -- -D warnings
+# A private single-node Slurm cluster for the campaign test (slurm-wlm, munge; nothing started).
+./scripts/setup_slurm.sh
 cargo test --release --workspace --locked
 # The serial protocol without std, for the board (rustup target installed on demand).
 ./scripts/no_std.sh

@@ -478,6 +478,8 @@ fn experiments_rows(cli: &Cli, bin_dir: &std::path::Path, work: &std::path::Path
         let status = std::process::Command::new(&exe)
             .current_dir(millinav_bench::workspace_root())
             .args(args)
+            // A timing: never reuse the cells of an earlier bench's campaign.
+            .arg("--fresh")
             .arg("--out")
             .arg(work.join(format!("experiments-{label}")))
             .stdout(std::process::Stdio::null())

@@ -6,12 +6,15 @@
 //!   vision replaced by ground truth plus Gaussian localization noise (σ from vision-eval);
 //! - `process`: the real process set in lockstep through `millinav run`, metrics from truth.csv.
 
+pub mod campaign;
 pub mod report;
 pub mod robustness;
+pub mod slurm;
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{bail, Context};
 use fieldmaps::rigfile::Rig;
@@ -29,8 +32,11 @@ use rand_distr::{Distribution, Normal};
 use shm_schemas::{deadlines, Flag, FrameStamp, Pose, PoseSource, MAX_COILS};
 
 /// The flow of a cell: still fluid, or one of the rig's `[[phantom.flow]]` conditions by its
-/// pump flow rate (at the cell's viscosity).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+/// pump flow rate (at the cell's viscosity). Files carry its short form (`static`, `q180`).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(into = "String", try_from = "String")]
 pub enum FlowSetting {
     Static,
     /// Pump flow rate, mL/min (whole numbers).
@@ -62,6 +68,14 @@ impl FlowSetting {
         }
     }
 
+    /// Parses [`Self::short`]'s form.
+    pub fn from_short(text: &str) -> Option<Self> {
+        match text {
+            "static" => Some(Self::Static),
+            _ => text.strip_prefix('q')?.parse().ok().map(Self::Flow),
+        }
+    }
+
     /// The rig's map for this setting at `viscosity_cp`, if the fluid moves; an error names
     /// the rig when it has no such condition.
     pub fn map(self, viscosity_cp: f64, rig: &Rig) -> anyhow::Result<Option<PathBuf>> {
@@ -85,8 +99,23 @@ impl FlowSetting {
     }
 }
 
+impl From<FlowSetting> for String {
+    fn from(flow: FlowSetting) -> Self {
+        flow.short()
+    }
+}
+
+impl TryFrom<String> for FlowSetting {
+    type Error = String;
+    fn try_from(text: String) -> Result<Self, Self::Error> {
+        Self::from_short(&text)
+            .ok_or_else(|| format!("flow {text:?}: expected \"static\" or q<mL/min>, e.g. q180"))
+    }
+}
+
 /// One cell of the matrix.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Cell {
     pub viscosity_cp: f64,
     pub flow: FlowSetting,
@@ -170,24 +199,39 @@ pub fn set_in_table(
     Ok(())
 }
 
+/// A scenario as a TOML document: its run, fluid and trajectory tables and every other section.
+pub fn scenario_document(scenario: &Scenario) -> anyhow::Result<toml::Table> {
+    let mut doc: toml::Table = toml::Table::new();
+    doc.insert("run".into(), toml::Table::try_from(&scenario.run)?.into());
+    doc.insert(
+        "fluid".into(),
+        toml::Table::try_from(&scenario.fluid)?.into(),
+    );
+    doc.insert(
+        "trajectory".into(),
+        toml::Table::try_from(&scenario.trajectory)?.into(),
+    );
+    for (key, value) in &scenario.sections {
+        doc.insert(key.clone(), value.clone());
+    }
+    Ok(doc)
+}
+
 /// The scenario text of a cell: the base scenario's run, trajectory, plant and vision tables
 /// with the cell's fluid, flow map, controller and seed.
 pub fn cell_scenario(base: &Scenario, cell: &Cell) -> anyhow::Result<String> {
     let rig = base.rig()?;
-    let mut doc: toml::Table = toml::Table::new();
-    let mut run = toml::Table::try_from(&base.run)?;
-    run.insert("seed".into(), toml::Value::Integer(cell.seed as i64));
-    doc.insert("run".into(), run.into());
-    let mut fluid = toml::Table::try_from(&base.fluid)?;
-    fluid.insert("viscosity_cp".into(), cell.viscosity_cp.into());
-    doc.insert("fluid".into(), fluid.into());
-    doc.insert(
-        "trajectory".into(),
-        toml::Table::try_from(&base.trajectory)?.into(),
-    );
-    for (key, value) in &base.sections {
-        doc.insert(key.clone(), value.clone());
-    }
+    let mut doc = scenario_document(base)?;
+    set_in_table(
+        &mut doc,
+        &["run", "seed"],
+        toml::Value::Integer(cell.seed as i64),
+    )?;
+    set_in_table(
+        &mut doc,
+        &["fluid", "viscosity_cp"],
+        cell.viscosity_cp.into(),
+    )?;
     let mut flow = doc
         .get("flow")
         .and_then(|v| v.as_table().cloned())
@@ -306,13 +350,92 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
     Ok(trace)
 }
 
+/// A process-mode run was stopped by SIGTERM (Slurm's time limit, preemption, `scancel`) before
+/// it finished; it has no result.
+#[derive(Debug, Clone, Copy)]
+pub struct Terminated;
+
+impl std::fmt::Display for Terminated {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "terminated by SIGTERM (Slurm time limit, preemption or scancel) before the run ended"
+        )
+    }
+}
+
+impl std::error::Error for Terminated {}
+
+/// How a process-mode run keeps to itself: the tag that starts its iceoryx2 prefix (one per
+/// campaign, so a later task can find what a killed one left), and the flag that asks it to
+/// stop.
+#[derive(Clone, Copy)]
+pub struct RunIsolation<'a> {
+    pub iox_tag: &'a str,
+    pub terminated: &'a AtomicBool,
+}
+
+/// The iceoryx2 file prefix of run `index` of process `pid` under `tag`: `<tag>_<pid>_<index>_`.
+fn iox_prefix(tag: &str, pid: u32, index: u64) -> String {
+    format!("{tag}_{pid}_{index}_")
+}
+
+/// Removes the shared-memory files and iceoryx2 roots that runs tagged `tag` left behind when
+/// their process is gone (a task killed with SIGKILL cannot clean up after itself); returns
+/// how many it removed.
+pub fn sweep_stale_iox(tag: &str) -> usize {
+    let alive = |pid: &str| Path::new("/proc").join(pid).exists();
+    let owner = |name: &str| -> Option<String> {
+        let rest = name.strip_prefix(tag)?.strip_prefix(['_', '-'])?;
+        let pid: String = rest.chars().take_while(char::is_ascii_digit).collect();
+        (!pid.is_empty()).then_some(pid)
+    };
+    let mut removed = 0;
+    for dir in [PathBuf::from("/dev/shm"), std::env::temp_dir()] {
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            continue;
+        };
+        for entry in entries.flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if owner(&name).is_some_and(|pid| !alive(&pid)) {
+                let path = entry.path();
+                let gone = if path.is_dir() {
+                    std::fs::remove_dir_all(&path)
+                } else {
+                    std::fs::remove_file(&path)
+                };
+                removed += usize::from(gone.is_ok());
+            }
+        }
+    }
+    removed
+}
+
+/// Removes every shared-memory file whose name starts with `prefix` (iceoryx2 keeps its global
+/// node counter there even after a clean shutdown).
+fn remove_shm_with_prefix(prefix: &str) {
+    if let Ok(entries) = std::fs::read_dir("/dev/shm") {
+        for entry in entries.flatten() {
+            if entry.file_name().to_string_lossy().starts_with(prefix) {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
+    }
+}
+
+/// How long the supervisor gets after SIGTERM to shut the set down safe-state first.
+const SUPERVISOR_SHUTDOWN: std::time::Duration = std::time::Duration::from_secs(20);
+
 /// Runs a scenario through the real process set (`millinav run`, lockstep) and reads back
-/// the plant's ground truth.
+/// the plant's ground truth. The run's iceoryx2 prefix and root are its own, and both are
+/// removed when it ends, however it ends; when `isolation.terminated` is raised the set is shut
+/// down and the run fails with [`Terminated`].
 pub fn process_run(
     scenario_text: &str,
     bin_dir: &Path,
     work_dir: &Path,
     name: &str,
+    isolation: RunIsolation<'_>,
 ) -> anyhow::Result<Vec<TraceRow>> {
     let dir = work_dir.join(name);
     let _ = std::fs::remove_dir_all(&dir);
@@ -323,10 +446,11 @@ pub fn process_run(
     // iceoryx2 keeps Unix-socket paths under its root, and those are limited to 108 bytes:
     // keep the root and prefix short and unique per run instead of nesting them in `dir`.
     static RUNS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let run_index = RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let prefix = format!("mx{}_{run_index}_", std::process::id());
-    let iox_root = std::env::temp_dir().join(format!("mx-{}-{run_index}", std::process::id()));
-    let status = Command::new(bin_dir.join("millinav"))
+    let run_index = RUNS.fetch_add(1, Ordering::Relaxed);
+    let pid = std::process::id();
+    let prefix = iox_prefix(isolation.iox_tag, pid, run_index);
+    let iox_root = std::env::temp_dir().join(format!("{}-{pid}-{run_index}", isolation.iox_tag));
+    let mut child = Command::new(bin_dir.join("millinav"))
         .arg("run")
         .arg(&scenario_path)
         .arg("--run-dir")
@@ -337,9 +461,15 @@ pub fn process_run(
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(dir.join("supervisor.log"))?)
-        .status()
+        .spawn()
         .context("running millinav")?;
+    let ended = wait_or_terminate(&mut child, isolation.terminated);
     let _ = std::fs::remove_dir_all(&iox_root);
+    remove_shm_with_prefix(&prefix);
+    let status = ended?;
+    if isolation.terminated.load(Ordering::Relaxed) {
+        return Err(Terminated.into());
+    }
     if !status.success() {
         bail!(
             "millinav run failed ({status}); see {}",
@@ -347,6 +477,38 @@ pub fn process_run(
         );
     }
     read_truth(&run_dir.join(TruthRow::FILE_NAME))
+}
+
+/// Waits for the supervisor; once `terminated` is raised, asks it to shut down (SIGTERM) and
+/// kills it if it has not within [`SUPERVISOR_SHUTDOWN`].
+fn wait_or_terminate(
+    child: &mut std::process::Child,
+    terminated: &AtomicBool,
+) -> anyhow::Result<std::process::ExitStatus> {
+    use nix::sys::signal::{kill, Signal};
+    use nix::unistd::Pid;
+    let poll = std::time::Duration::from_millis(50);
+    let mut asked_at: Option<std::time::Instant> = None;
+    loop {
+        if let Some(status) = child.try_wait()? {
+            return Ok(status);
+        }
+        if terminated.load(Ordering::Relaxed) {
+            let pid = Pid::from_raw(child.id() as i32);
+            match asked_at {
+                None => {
+                    let _ = kill(pid, Signal::SIGTERM);
+                    asked_at = Some(std::time::Instant::now());
+                }
+                Some(at) if at.elapsed() > SUPERVISOR_SHUTDOWN => {
+                    let _ = child.kill();
+                    return Ok(child.wait()?);
+                }
+                Some(_) => {}
+            }
+        }
+        std::thread::sleep(poll);
+    }
 }
 
 /// The trace of an earlier `process_run` of the scenario `scenario_text` in `dir`; an error if
@@ -406,7 +568,7 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TraceRow>> {
 }
 
 /// Metrics of one run against its reference.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Copy, Default, serde::Serialize, serde::Deserialize)]
 pub struct Metrics {
     pub rmse_mm: f64,
     pub p95_mm: f64,

@@ -1,34 +1,100 @@
-//! `experiments`: the paper's matrix on the twin, with tables and figures.
+//! `experiments`: the paper's matrix (or the robustness matrix) on the twin, run as a campaign
+//! on this machine or as a Slurm job array, with tables and figures.
 use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use clap::{Parser, ValueEnum};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 use fieldmaps::rigfile::Rig;
 use indicatif::{ProgressBar, ProgressStyle};
-use millinav_experiments::report::{self, Outcome};
-use millinav_experiments::robustness;
-use millinav_experiments::{
-    cell_scenario, fast_run, metrics, process_run, recorded_run, reference_of, rig_matrix,
-    set_in_table, write_rrd, Cell, Metrics, TraceRow,
+use millinav_experiments::campaign::{
+    Campaign, CellSpec, MatrixKind, MatrixPlan, Mode, Planned, Progress, RunContext,
 };
+use millinav_experiments::slurm::{self, SlurmSettings};
+use millinav_experiments::{report, rig_matrix, robustness, set_in_table};
 use millinav_kit::scenario::Scenario;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-enum Mode {
-    /// One process, the services' libraries, ground truth + localization noise for vision.
-    Fast,
-    /// The real process set in lockstep through `millinav run` (slow: full camera + vision).
-    Process,
+enum Backend {
+    /// Worker threads on this machine.
+    Local,
+    /// One Slurm job array: one task per cell (or per --cells-per-task cells), submitted with
+    /// sbatch from this machine; the output directory must be on a file system the compute
+    /// nodes share.
+    Slurm,
 }
 
-/// Runs the paper's matrix (viscosity {20, 4.3} cP x flow {static, 7, 10 cm/s} x controller
-/// {PID, MPC, SMC-DOB, SMC without DOB} x trials) on the digital twin and writes results.csv,
-/// table.md and PNG figures into --out.
+/// Runs the paper's matrix (viscosity x flow x controller x trials, from the base scenario's
+/// rig) or the robustness matrix on the digital twin as a campaign in --out: every cell runs
+/// (`run-cell`) into a result file of its own, on local threads or as Slurm array tasks, and
+/// `collect` turns the result files into results.csv, table.md and PNG figures.
 #[derive(Parser)]
-#[command(name = "experiments", version)]
-struct Args {
+#[command(name = "experiments", version, args_conflicts_with_subcommands = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    matrix: MatrixArgs,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Runs cells of a planned campaign and writes their result files (what each Slurm array
+    /// task runs; also to re-run one cell by hand).
+    RunCell(RunCellArgs),
+    /// Where a campaign stands: cells done, running, pending, and failed or missing (by name,
+    /// with why). Exits 1 when cells failed and nothing is left in flight.
+    Status {
+        /// The campaign's --out directory.
+        dir: PathBuf,
+        /// Wait (with a progress bar) until nothing of it is left in the Slurm queue.
+        #[arg(long)]
+        wait: bool,
+    },
+    /// Runs again every cell of a campaign that has no result (failed, killed, never run):
+    /// resubmits their array tasks on Slurm, or runs them here for a local campaign; then
+    /// waits and collects.
+    Resume {
+        /// The campaign's --out directory.
+        dir: PathBuf,
+        /// Submit and return without waiting.
+        #[arg(long)]
+        no_wait: bool,
+        /// Worker threads (a local campaign).
+        #[arg(long, default_value_t = 2)]
+        threads: usize,
+        #[command(flatten)]
+        slurm: SlurmArgs,
+    },
+    /// Turns a campaign's result files into results.csv, table.md and the figures in its
+    /// directory; names the cells that have no result.
+    Collect {
+        /// The campaign's --out directory.
+        dir: PathBuf,
+    },
+}
+
+#[derive(Args)]
+struct RunCellArgs {
+    /// The campaign's --out directory.
+    #[arg(long)]
+    campaign: PathBuf,
+    /// Run the cells of this array task (Slurm's SLURM_ARRAY_TASK_ID).
+    #[arg(long, conflicts_with = "cell", required_unless_present = "cell")]
+    array_task: Option<usize>,
+    /// Run this cell (its name, e.g. 20cp_q180_pid_s1).
+    #[arg(long)]
+    cell: Option<String>,
+    /// Worker threads for fast-mode cells (default: SLURM_CPUS_PER_TASK, else 1).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+#[derive(Args)]
+struct MatrixArgs {
     /// Base scenario (run, trajectory, plant and vision settings); each cell overrides fluid,
     /// flow map, controller and seed.
     #[arg(long, default_value = "scenarios/paper.toml")]
@@ -79,51 +145,643 @@ struct Args {
     /// baselines (or --controllers); writes robustness.csv, robustness.md, robustness.png.
     #[arg(long)]
     robustness: bool,
-    /// Worker threads (fast mode).
+    /// Worker threads (local backend, fast mode; process mode runs one cell at a time).
     #[arg(long, default_value_t = 2)]
     threads: usize,
-    /// Output directory.
+    /// Output directory: tables and figures, and the campaign (`<out>/campaign/`: the plan,
+    /// every cell's scenario and result file). An --out that holds the same matrix of the same
+    /// build keeps its finished cells; one of another build or matrix is refused.
     #[arg(long, default_value = "results")]
     out: PathBuf,
+    /// Where the cells run.
+    #[arg(long, value_enum, default_value = "local")]
+    backend: Backend,
+    /// Delete a campaign already in --out (another build's or matrix's) and start over.
+    #[arg(long)]
+    fresh: bool,
+    /// Slurm: submit and return; follow with `experiments status DIR --wait`, then
+    /// `experiments collect DIR`.
+    #[arg(long)]
+    no_wait: bool,
+    #[command(flatten)]
+    slurm: SlurmArgs,
 }
 
-/// Traces of the first trial (seed 1) of each cell, for the trace figures.
-type FirstTrials = Vec<(Cell, Vec<TraceRow>)>;
+/// How the Slurm array is submitted (the flags override --slurm-config's keys).
+#[derive(Args, Clone, Default)]
+struct SlurmArgs {
+    /// TOML with the keys partition, time, cpus_per_task, cells_per_task, max_parallel,
+    /// sbatch_lines (a list of options), setup, job_name, poll_s.
+    #[arg(long, help_heading = "Slurm")]
+    slurm_config: Option<PathBuf>,
+    /// Partition of every array task (default: the cluster's default partition).
+    #[arg(long, help_heading = "Slurm")]
+    partition: Option<String>,
+    /// Time limit of one array task, in sbatch's forms (e.g. 00:30:00 or 1-00:00:00).
+    #[arg(long, help_heading = "Slurm")]
+    time: Option<String>,
+    /// CPUs of one array task; its fast-mode cells run on as many threads.
+    #[arg(long, help_heading = "Slurm")]
+    cpus_per_task: Option<u32>,
+    /// Cells one array task runs (default 1; fixed once a campaign is submitted).
+    #[arg(long, help_heading = "Slurm")]
+    cells_per_task: Option<usize>,
+    /// At most this many array tasks at once.
+    #[arg(long, help_heading = "Slurm")]
+    max_parallel: Option<u32>,
+    /// A further #SBATCH option (repeatable), e.g. --sbatch-line=--mem=2G.
+    #[arg(
+        long = "sbatch-line",
+        help_heading = "Slurm",
+        allow_hyphen_values = true
+    )]
+    sbatch_lines: Vec<String>,
+    /// A shell command each task runs first, e.g. "module load opencv".
+    #[arg(long, help_heading = "Slurm")]
+    setup: Option<String>,
+    /// Seconds between two looks at the queue while waiting.
+    #[arg(long, help_heading = "Slurm")]
+    poll_s: Option<f64>,
+}
 
-fn main() -> anyhow::Result<()> {
-    let args = Args::parse();
-    let base = load_base(&args)?;
-    if args.robustness {
-        return run_robustness(&args, &base);
+impl SlurmArgs {
+    /// `base` (a campaign's earlier settings, or the defaults), then --slurm-config, then the
+    /// flags.
+    fn settings(&self, base: SlurmSettings) -> anyhow::Result<SlurmSettings> {
+        let mut s = match &self.slurm_config {
+            Some(path) => SlurmSettings::load(path)?,
+            None => base,
+        };
+        if let Some(v) = &self.partition {
+            s.partition = Some(v.clone());
+        }
+        if let Some(v) = &self.time {
+            s.time = Some(v.clone());
+        }
+        if let Some(v) = self.cpus_per_task {
+            s.cpus_per_task = v;
+        }
+        if let Some(v) = self.cells_per_task {
+            s.cells_per_task = v;
+        }
+        if let Some(v) = self.max_parallel {
+            s.max_parallel = Some(v);
+        }
+        if !self.sbatch_lines.is_empty() {
+            s.sbatch_lines = self.sbatch_lines.clone();
+        }
+        if let Some(v) = &self.setup {
+            s.setup = Some(v.clone());
+        }
+        if let Some(v) = self.poll_s {
+            s.poll_s = v;
+        }
+        s.validate()?;
+        Ok(s)
     }
-    let rig = base.rig()?;
-    let cells = selected_cells(&args, &rig)?;
-    std::fs::create_dir_all(&args.out)?;
-    let threads = match args.mode {
-        Mode::Fast => args.threads.max(1),
-        Mode::Process => 1,
+
+    fn given(&self) -> bool {
+        self.slurm_config.is_some()
+            || self.partition.is_some()
+            || self.time.is_some()
+            || self.cpus_per_task.is_some()
+            || self.cells_per_task.is_some()
+            || self.max_parallel.is_some()
+            || !self.sbatch_lines.is_empty()
+            || self.setup.is_some()
+            || self.poll_s.is_some()
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let outcome = match cli.command {
+        None => run_matrix(&cli.matrix),
+        Some(Command::RunCell(args)) => run_cell(&args),
+        Some(Command::Status { dir, wait }) => status(&dir, wait),
+        Some(Command::Resume {
+            dir,
+            no_wait,
+            threads,
+            slurm,
+        }) => resume(&dir, no_wait, threads, &slurm),
+        Some(Command::Collect { dir }) => collect(&dir).map(|()| ExitCode::SUCCESS),
     };
-    let start = Instant::now();
-    let (mut outcomes, traces) = run_cells(&args, &base, cells, threads)?;
-    outcomes.sort_by_key(|o| o.cell.name());
-    let mode = format!("{:?}", args.mode).to_lowercase();
-    write_tables(&args, &base, &outcomes, &mode)?;
-    println!(
-        "{} runs in {:.1} s ({mode} mode, {threads} threads)",
-        outcomes.len(),
-        start.elapsed().as_secs_f64()
-    );
-    if report::register_font() {
-        write_figures(&args, &base, &outcomes, &traces)?;
-    } else {
-        eprintln!("no DejaVu font found (apt install fonts-dejavu-core): figures skipped");
+    match outcome {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
     }
+}
+
+/// Plans the matrix into --out, runs it on the chosen backend, and collects it.
+fn run_matrix(args: &MatrixArgs) -> anyhow::Result<ExitCode> {
+    let base = load_base(args)?;
+    anyhow::ensure!(
+        !args.reuse_runs || args.mode == Mode::Process,
+        "--reuse-runs reads earlier process-mode runs: use it with --mode process"
+    );
+    anyhow::ensure!(
+        args.backend == Backend::Slurm || !args.slurm.given() && !args.no_wait,
+        "Slurm options (--partition, --time, --no-wait, …) go with --backend slurm"
+    );
+    let (matrix, cells) = if args.robustness {
+        (MatrixKind::Robustness, robustness_cases(args)?)
+    } else {
+        let rig = base.rig()?;
+        (
+            MatrixKind::Paper,
+            selected_cells(args, &rig)?
+                .into_iter()
+                .map(CellSpec::Paper)
+                .collect(),
+        )
+    };
+    let settings = match args.backend {
+        Backend::Local => None,
+        Backend::Slurm => {
+            let settings = args.slurm.settings(SlurmSettings::default())?;
+            slurm::preflight(&settings)?;
+            Some(settings)
+        }
+    };
+    if !args.fresh {
+        if let Ok(old) = Campaign::open(&args.out) {
+            let jobs = slurm::submissions(&old)?;
+            if !jobs.is_empty() {
+                anyhow::bail!(
+                    "{} holds a campaign submitted to Slurm (job {}): follow it with `experiments \
+                     status {dir}`, run what is missing with `experiments resume {dir}`, or \
+                     start over with --fresh",
+                    old.dir.display(),
+                    jobs.iter()
+                        .map(|j| j.job_id.as_str())
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    dir = args.out.display()
+                );
+            }
+        }
+    }
+    let start = Instant::now();
+    let mode = args.mode;
+    let (campaign, planned) = Campaign::plan(
+        &args.out,
+        MatrixPlan {
+            matrix,
+            mode,
+            table_header: report::table_header(mode.name(), &base)?,
+            base,
+            cells,
+            write_rrd: !args.no_rrd,
+            reuse_runs: args.reuse_runs,
+            bin_dir: bin_dir()?,
+            slurm: settings.clone(),
+        },
+        args.fresh,
+    )?;
+    let unfinished = campaign.unfinished();
+    if planned == Planned::Existing {
+        println!(
+            "{}: {} of {} cells already have results (same build and matrix); running the {} \
+             others",
+            campaign.dir.display(),
+            campaign.manifest.cells.len() - unfinished.len(),
+            campaign.manifest.cells.len(),
+            unfinished.len()
+        );
+    }
+    match settings {
+        None => {
+            let threads = local_threads(mode, args.threads);
+            let build = campaign.manifest.build.sha256.clone();
+            run_locally(&campaign, &build, unfinished, threads)?;
+            finish(&campaign, &campaign.local_progress(), start, threads)
+        }
+        Some(settings) => submit_and_follow(&campaign, &settings, &unfinished, args.no_wait, start),
+    }
+}
+
+fn local_threads(mode: Mode, threads: usize) -> usize {
+    match mode {
+        Mode::Fast => threads.max(1),
+        Mode::Process => 1,
+    }
+}
+
+/// Submits the tasks of `cells`, then (unless `no_wait`) follows them and collects.
+fn submit_and_follow(
+    campaign: &Campaign,
+    settings: &SlurmSettings,
+    cells: &[usize],
+    no_wait: bool,
+    start: Instant,
+) -> anyhow::Result<ExitCode> {
+    if cells.is_empty() {
+        println!("every cell has a result already");
+        return finish(campaign, &slurm::progress(campaign)?, start, 0);
+    }
+    let mut tasks: Vec<usize> = cells
+        .iter()
+        .map(|&c| slurm::task_of(c, settings.cells_per_task))
+        .collect();
+    tasks.dedup();
+    let submission = slurm::submit(campaign, settings, &tasks)?;
+    println!(
+        "submitted {} cells as {} array tasks of job {} ({})",
+        cells.len(),
+        tasks.len(),
+        submission.job_id,
+        campaign.dir.join("slurm").join("job.sh").display()
+    );
+    let dir = campaign.out.display();
+    if no_wait {
+        println!(
+            "follow it with `experiments status {dir} --wait`, then `experiments collect {dir}` \
+             (or `experiments resume {dir}` for what failed)"
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let progress = wait_for(campaign, settings.poll_s)?;
+    finish(campaign, &progress, start, 0)
+}
+
+/// Looks at the queue every `poll_s` with a progress bar until nothing of the campaign is
+/// left in it. A few failed looks in a row (a busy controller) are tolerated.
+fn wait_for(campaign: &Campaign, poll_s: f64) -> anyhow::Result<Progress> {
+    let bar = progress_bar(campaign.manifest.cells.len());
+    let mut failed_looks = 0;
+    loop {
+        match slurm::progress(campaign) {
+            Ok(p) => {
+                failed_looks = 0;
+                bar.set_position(p.done as u64);
+                bar.set_message(format!(
+                    "{} running, {} pending, {} failed",
+                    p.running,
+                    p.pending,
+                    p.failed.len()
+                ));
+                if !p.in_flight() {
+                    bar.finish();
+                    return Ok(p);
+                }
+            }
+            Err(e) if failed_looks < 10 => {
+                failed_looks += 1;
+                bar.println(format!("looking at the queue failed (will retry): {e:#}"));
+            }
+            Err(e) => return Err(e),
+        }
+        std::thread::sleep(Duration::from_secs_f64(poll_s));
+    }
+}
+
+fn progress_bar(len: usize) -> ProgressBar {
+    ProgressBar::new(len as u64).with_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    )
+}
+
+/// Collects a campaign whose cells all finished, or names the ones that did not.
+fn finish(
+    campaign: &Campaign,
+    progress: &Progress,
+    start: Instant,
+    threads: usize,
+) -> anyhow::Result<ExitCode> {
+    if !progress.failed.is_empty() {
+        report_failures(campaign, progress);
+        return Ok(ExitCode::from(1));
+    }
+    let table = campaign.collect()?;
+    println!("{table}");
+    let backend = if campaign.manifest.slurm.is_some() {
+        "Slurm".to_string()
+    } else {
+        format!("{threads} threads")
+    };
+    println!(
+        "{} runs in {:.1} s ({} mode, {backend}); tables and figures in {}",
+        progress.total,
+        start.elapsed().as_secs_f64(),
+        campaign.manifest.mode.name(),
+        campaign.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+fn report_failures(campaign: &Campaign, progress: &Progress) {
+    eprintln!("{}", progress.line());
+    for (name, why) in &progress.failed {
+        eprintln!("  {name}: {why}");
+    }
+    eprintln!(
+        "run them again with `experiments resume {}`",
+        campaign.out.display()
+    );
+}
+
+/// Runs `cells` on `threads` workers here, each into its result file; the failures are
+/// written beside them and counted, not fatal to the others.
+fn run_locally(
+    campaign: &Campaign,
+    build_sha256: &str,
+    cells: Vec<usize>,
+    threads: usize,
+) -> anyhow::Result<()> {
+    let never = AtomicBool::new(false);
+    let context = RunContext {
+        build_sha256,
+        terminated: &never,
+        slurm_task: None,
+    };
+    run_parallel(
+        cells,
+        threads,
+        |&i, result: &Result<millinav_experiments::campaign::CellResult, String>| {
+            let name = campaign.manifest.cells[i].name();
+            match result {
+                Ok(r) => format!("{name} RMSE {:.2} mm", r.metrics.rmse_mm),
+                Err(e) => format!("{name} failed: {e}"),
+            }
+        },
+        |&i| Ok(campaign.run_cell(i, &context).map_err(|e| format!("{e:#}"))),
+    )?;
     Ok(())
+}
+
+/// Runs `work` on every item on `threads` workers with a progress bar (`label` names an item
+/// and its result); returns the items with their results, in no particular order.
+fn run_parallel<T: Send, R: Send>(
+    items: Vec<T>,
+    threads: usize,
+    label: impl Fn(&T, &R) -> String + Sync,
+    work: impl Fn(&T) -> anyhow::Result<R> + Sync,
+) -> anyhow::Result<Vec<(T, R)>> {
+    let bar = progress_bar(items.len());
+    let done: Mutex<Vec<(T, R)>> = Mutex::new(Vec::new());
+    let queue = Mutex::new(items);
+    let poisoned = || anyhow::anyhow!("poisoned");
+    let worker = || -> anyhow::Result<()> {
+        loop {
+            let Some(item) = queue.lock().map_err(|_| poisoned())?.pop() else {
+                return Ok(());
+            };
+            let result = work(&item)?;
+            bar.set_message(label(&item, &result));
+            bar.inc(1);
+            done.lock().map_err(|_| poisoned())?.push((item, result));
+        }
+    };
+    std::thread::scope(|s| -> anyhow::Result<()> {
+        let handles: Vec<_> = (0..threads).map(|_| s.spawn(worker)).collect();
+        for h in handles {
+            h.join().map_err(|_| anyhow::anyhow!("worker panicked"))??;
+        }
+        Ok(())
+    })?;
+    bar.finish();
+    done.into_inner().map_err(|_| poisoned())
+}
+
+/// Raised by SIGTERM (Slurm's time limit, preemption, scancel): `run-cell` stops, writes no
+/// result, and leaves no shared memory behind.
+static TERMINATED: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_sigterm(_: nix::libc::c_int) {
+    TERMINATED.store(true, Ordering::SeqCst);
+}
+
+fn install_sigterm_handler() -> anyhow::Result<()> {
+    use nix::sys::signal::{sigaction, SaFlags, SigAction, SigHandler, SigSet, Signal};
+    let action = SigAction::new(
+        SigHandler::Handler(on_sigterm),
+        SaFlags::SA_RESTART,
+        SigSet::empty(),
+    );
+    // SAFETY: the handler only stores to an atomic, which is async-signal-safe.
+    unsafe { sigaction(Signal::SIGTERM, &action) }.context("installing the SIGTERM handler")?;
+    Ok(())
+}
+
+/// `run-cell`: the cells of one array task (or one named cell), one result file each.
+fn run_cell(args: &RunCellArgs) -> anyhow::Result<ExitCode> {
+    install_sigterm_handler()?;
+    let campaign = Campaign::open(&args.campaign)?;
+    let manifest = &campaign.manifest;
+    let cells: Vec<usize> = match (&args.cell, args.array_task) {
+        (Some(name), _) => vec![manifest
+            .cells
+            .iter()
+            .position(|c| &c.name() == name)
+            .with_context(|| {
+                format!(
+                    "no cell {name:?} in the campaign {} (cells look like {})",
+                    campaign.dir.display(),
+                    manifest.cells[0].name()
+                )
+            })?],
+        (None, Some(task)) => {
+            let per_task = manifest.slurm.as_ref().map_or(1, |s| s.cells_per_task);
+            let range = slurm::cells_of_task(task, per_task, manifest.cells.len());
+            anyhow::ensure!(
+                !range.is_empty(),
+                "array task {task} has no cells: the campaign has {} cells, {per_task} per task",
+                manifest.cells.len()
+            );
+            range.collect()
+        }
+        (None, None) => anyhow::bail!("give --array-task or --cell"),
+    };
+    let slurm_task = match (
+        std::env::var("SLURM_ARRAY_JOB_ID"),
+        std::env::var("SLURM_ARRAY_TASK_ID"),
+    ) {
+        (Ok(job), Ok(task)) => Some(format!("{job}_{task}")),
+        _ => None,
+    };
+    if manifest.mode == Mode::Process {
+        // What tasks killed outright on this node left behind.
+        let removed = millinav_experiments::sweep_stale_iox(&campaign.iox_tag());
+        if removed > 0 {
+            eprintln!("removed {removed} iceoryx2 files of killed runs of this campaign");
+        }
+    } else {
+        // A fast-mode cell cannot stop half way: leave at once, writing nothing.
+        std::thread::spawn(|| loop {
+            if TERMINATED.load(Ordering::SeqCst) {
+                eprintln!("terminated by SIGTERM: no result written");
+                std::process::exit(143);
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        });
+    }
+    let build = match campaign.check_build() {
+        Ok(hash) => hash,
+        Err(e) => {
+            // Every cell of the task says why it did not run.
+            for &i in &cells {
+                campaign.mark_failed(i, &format!("{e:#}"));
+            }
+            return Err(e);
+        }
+    };
+    let todo: Vec<usize> = cells
+        .into_iter()
+        .filter(|&i| campaign.cell_files(i) != millinav_experiments::campaign::CellFiles::Done)
+        .collect();
+    let threads = match manifest.mode {
+        Mode::Process => 1,
+        Mode::Fast => args
+            .threads
+            .or_else(|| std::env::var("SLURM_CPUS_PER_TASK").ok()?.parse().ok())
+            .unwrap_or(1)
+            .max(1),
+    };
+    let context = RunContext {
+        build_sha256: &build,
+        terminated: &TERMINATED,
+        slurm_task,
+    };
+    let results = run_parallel(
+        todo,
+        threads,
+        |&i, result: &Result<f64, String>| {
+            let name = manifest.cells[i].name();
+            match result {
+                Ok(rmse) => format!("{name} RMSE {rmse:.2} mm"),
+                Err(e) => format!("{name} failed: {e}"),
+            }
+        },
+        |&i| {
+            if TERMINATED.load(Ordering::SeqCst) {
+                return Ok(Err(millinav_experiments::Terminated.to_string()));
+            }
+            Ok(campaign
+                .run_cell(i, &context)
+                .map(|r| r.metrics.rmse_mm)
+                .map_err(|e| format!("{e:#}")))
+        },
+    )?;
+    let mut failed = 0;
+    for (i, result) in &results {
+        if let Err(e) = result {
+            failed += 1;
+            eprintln!("{}: {e}", manifest.cells[*i].name());
+        }
+    }
+    Ok(if TERMINATED.load(Ordering::SeqCst) {
+        ExitCode::from(143)
+    } else if failed > 0 {
+        ExitCode::from(1)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+/// `status`: the campaign's progress, and the failed or missing cells with why.
+fn status(dir: &Path, wait: bool) -> anyhow::Result<ExitCode> {
+    let campaign = Campaign::open(dir)?;
+    let progress = match &campaign.manifest.slurm {
+        None => campaign.local_progress(),
+        Some(settings) if wait => wait_for(&campaign, settings.poll_s)?,
+        Some(_) => slurm::progress(&campaign)?,
+    };
+    println!("{}: {}", campaign.dir.display(), progress.line());
+    if progress.in_flight() {
+        return Ok(ExitCode::SUCCESS);
+    }
+    if progress.failed.is_empty() {
+        println!(
+            "every cell has a result: `experiments collect {}` writes the tables",
+            campaign.out.display()
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    report_failures(&campaign, &progress);
+    Ok(ExitCode::from(1))
+}
+
+/// `resume`: runs again every cell without a result.
+fn resume(dir: &Path, no_wait: bool, threads: usize, args: &SlurmArgs) -> anyhow::Result<ExitCode> {
+    let start = Instant::now();
+    let mut campaign = Campaign::open(dir)?;
+    let build = campaign.check_build()?;
+    let unfinished = campaign.unfinished();
+    let Some(old) = campaign.manifest.slurm.clone() else {
+        anyhow::ensure!(
+            !args.given() && !no_wait,
+            "{} ran on this machine: Slurm options do not apply to its resume",
+            campaign.dir.display()
+        );
+        report_resumed(&campaign, &campaign.local_progress());
+        let threads = local_threads(campaign.manifest.mode, threads);
+        campaign.clear_failures(&unfinished);
+        run_locally(&campaign, &build, unfinished, threads)?;
+        return finish(&campaign, &campaign.local_progress(), start, threads);
+    };
+    let settings = args.settings(old.clone())?;
+    anyhow::ensure!(
+        settings.cells_per_task == old.cells_per_task,
+        "the campaign was submitted with {} cells per task; its array tasks keep that",
+        old.cells_per_task
+    );
+    slurm::preflight(&settings)?;
+    let progress = slurm::progress(&campaign)?;
+    if progress.in_flight() {
+        anyhow::bail!(
+            "{} of the campaign's cells are still in the Slurm queue ({}); wait for them \
+             (`experiments status {} --wait`) or scancel them first",
+            progress.running + progress.pending,
+            progress.line(),
+            campaign.out.display()
+        );
+    }
+    report_resumed(&campaign, &progress);
+    campaign.clear_failures(&unfinished);
+    campaign.manifest.slurm = Some(settings.clone());
+    campaign.write_manifest()?;
+    submit_and_follow(&campaign, &settings, &unfinished, no_wait, start)
+}
+
+fn report_resumed(campaign: &Campaign, progress: &Progress) {
+    println!(
+        "{}: {}; running again:",
+        campaign.dir.display(),
+        progress.line()
+    );
+    for (name, why) in &progress.failed {
+        println!("  {name} ({why})");
+    }
+}
+
+/// `collect`: the tables and figures from the result files.
+fn collect(dir: &Path) -> anyhow::Result<()> {
+    let campaign = Campaign::open(dir)?;
+    let table = campaign.collect()?;
+    println!("{table}");
+    println!(
+        "{} cells collected into {}",
+        campaign.manifest.cells.len(),
+        campaign.out.display()
+    );
+    Ok(())
+}
+
+fn bin_dir() -> anyhow::Result<PathBuf> {
+    Ok(std::env::current_exe()?
+        .parent()
+        .context("the experiments binary has no folder")?
+        .to_owned())
 }
 
 /// The base scenario, with `--frame-period-ms`, `--camera-latency-ms`, `--coil-gain-error`
 /// and `--no-latency-compensation` applied.
-fn load_base(args: &Args) -> anyhow::Result<Scenario> {
+fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
     let mut base = Scenario::load(&args.base)
         .with_context(|| format!("base scenario {}", args.base.display()))?;
     if let Some(period) = args.frame_period_ms {
@@ -171,42 +829,8 @@ fn load_base(args: &Args) -> anyhow::Result<Scenario> {
     Ok(base)
 }
 
-/// The camera latency and whether control compensates it, for the table's header.
-fn latency_note(base: &Scenario) -> String {
-    let get = |path: &[&str]| {
-        path.iter()
-            .try_fold(None::<&toml::Value>, |at, key| {
-                let table = match at {
-                    None => Some(&base.sections),
-                    Some(value) => value.as_table(),
-                };
-                table.and_then(|t| t.get(*key)).map(Some)
-            })
-            .flatten()
-    };
-    let frames = get(&["plant", "camera", "latency_frames"])
-        .and_then(toml::Value::as_integer)
-        .unwrap_or(0);
-    let compensated = get(&["control", "latency", "compensate"])
-        .and_then(toml::Value::as_bool)
-        .unwrap_or(true);
-    let gain_error = get(&["plant", "physics", "coil_gain_error_std"])
-        .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
-        .unwrap_or(millinav_plant::model::PlantPhysicsConfig::default().coil_gain_error_std);
-    format!(
-        "{} ms extra camera latency ({}), per-coil gain error σ {:.0} % unknown to control",
-        frames as f64 * base.run.frame_period_ms,
-        if compensated {
-            "compensated"
-        } else {
-            "not compensated"
-        },
-        gain_error * 100.0
-    )
-}
-
 /// The matrix's cells that `--beyond`, `--controllers` and `--only` select (at least one).
-fn selected_cells(args: &Args, rig: &Rig) -> anyhow::Result<Vec<Cell>> {
+fn selected_cells(args: &MatrixArgs, rig: &Rig) -> anyhow::Result<Vec<millinav_experiments::Cell>> {
     // Naming a beyond-the-paper controller asks for it, with or without --beyond.
     let beyond = args.beyond
         || args
@@ -247,85 +871,9 @@ fn selected_cells(args: &Args, rig: &Rig) -> anyhow::Result<Vec<Cell>> {
     Ok(cells)
 }
 
-/// Runs `work` on every item on `threads` workers with a progress bar (`label` names an item
-/// and its result); returns the items with their results, in no particular order.
-fn run_parallel<T: Send, R: Send>(
-    items: Vec<T>,
-    threads: usize,
-    label: impl Fn(&T, &R) -> String + Sync,
-    work: impl Fn(&T) -> anyhow::Result<R> + Sync,
-) -> anyhow::Result<Vec<(T, R)>> {
-    let bar = ProgressBar::new(items.len() as u64).with_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    let done: Mutex<Vec<(T, R)>> = Mutex::new(Vec::new());
-    let queue = Mutex::new(items);
-    let poisoned = || anyhow::anyhow!("poisoned");
-    let worker = || -> anyhow::Result<()> {
-        loop {
-            let Some(item) = queue.lock().map_err(|_| poisoned())?.pop() else {
-                return Ok(());
-            };
-            let result = work(&item)?;
-            bar.set_message(label(&item, &result));
-            bar.inc(1);
-            done.lock().map_err(|_| poisoned())?.push((item, result));
-        }
-    };
-    std::thread::scope(|s| -> anyhow::Result<()> {
-        let handles: Vec<_> = (0..threads).map(|_| s.spawn(worker)).collect();
-        for h in handles {
-            h.join().map_err(|_| anyhow::anyhow!("worker panicked"))??;
-        }
-        Ok(())
-    })?;
-    bar.finish();
-    done.into_inner().map_err(|_| poisoned())
-}
-
-/// Runs every cell on `threads` workers with a progress bar; returns the outcomes (in no
-/// particular order) and the first trials' traces.
-fn run_cells(
-    args: &Args,
-    base: &Scenario,
-    cells: Vec<Cell>,
-    threads: usize,
-) -> anyhow::Result<(Vec<Outcome>, FirstTrials)> {
-    let bin_dir = std::env::current_exe()?
-        .parent()
-        .context("exe dir")?
-        .to_owned();
-    let runs = run_parallel(
-        cells,
-        threads,
-        |cell, (_, m, _): &(Vec<TraceRow>, Metrics, f64)| {
-            format!("{} RMSE {:.2} mm", cell.name(), m.rmse_mm)
-        },
-        |cell| run_cell(args, base, &bin_dir, cell),
-    )?;
-    let mut outcomes = Vec::with_capacity(runs.len());
-    let mut traces = Vec::new();
-    for (cell, (trace, metrics, wall_s)) in runs {
-        if cell.seed == 1 {
-            traces.push((cell.clone(), trace));
-        }
-        outcomes.push(Outcome {
-            cell,
-            metrics,
-            wall_s,
-        });
-    }
-    Ok((outcomes, traces))
-}
-
-/// The robustness matrix (`--robustness`): runs every case in fast mode and writes
-/// robustness.csv, robustness.md and robustness.png into `--out`.
-fn run_robustness(args: &Args, base: &Scenario) -> anyhow::Result<()> {
-    anyhow::ensure!(
-        args.mode == Mode::Fast,
-        "--robustness runs in fast mode only (thousands of runs; see README)"
-    );
+/// The robustness matrix's cases for `--controllers` (default: the scheduled SMC-DOB and the
+/// baselines), `--only` applied to their names.
+fn robustness_cases(args: &MatrixArgs) -> anyhow::Result<Vec<CellSpec>> {
     let known = ["pid", "mpc", "smc-dob", "smc", "smc-dob-auto", "smc-auto"];
     let controllers: Vec<String> = if args.controllers.is_empty() {
         ["smc-dob-auto", "pid", "mpc", "smc-dob"]
@@ -340,183 +888,15 @@ fn run_robustness(args: &Args, base: &Scenario) -> anyhow::Result<()> {
             known.join(", ")
         );
     }
-    let cases = robustness::cases(&controllers, args.trials.max(1));
-    std::fs::create_dir_all(&args.out)?;
-    let start = Instant::now();
-    let runs = run_parallel(
-        cases,
-        args.threads.max(1),
-        |case, m: &Metrics| format!("{} RMSE {:.2} mm", case.name(), m.rmse_mm),
-        |case| {
-            let text = robustness::case_scenario(base, case)?;
-            let scenario = Scenario::parse(&text, &args.out.join(format!("{}.toml", case.name())))?;
-            let trace = fast_run(&scenario)?;
-            let reference = reference_of(&scenario)?;
-            Ok(metrics(
-                &trace,
-                &reference,
-                scenario.rig()?.coil_limits().coil_resistance_ohm,
-            ))
-        },
-    )?;
-    let outcomes: Vec<robustness::CaseOutcome> = runs
-        .into_iter()
-        .map(|(case, metrics)| robustness::CaseOutcome { case, metrics })
-        .collect();
-    let table = robustness::write_tables(&outcomes, &args.out)?;
-    println!("{table}");
-    println!(
-        "{} runs in {:.1} s (fast mode, {} threads)",
-        outcomes.len(),
-        start.elapsed().as_secs_f64(),
-        args.threads.max(1)
+    let mut cases = robustness::cases(&controllers, args.trials.max(1));
+    if !args.only.is_empty() {
+        cases.retain(|c| args.only.iter().any(|o| c.name().contains(o.as_str())));
+    }
+    anyhow::ensure!(
+        !cases.is_empty(),
+        "no case of the robustness matrix matches --only {:?} (names look like \
+         pulsation-hz_1_100ms_pid_s1)",
+        args.only
     );
-    if report::register_font() {
-        robustness::heat_map(&outcomes, &args.out.join("robustness.png"))?;
-    } else {
-        eprintln!("no DejaVu font found (apt install fonts-dejavu-core): heat map skipped");
-    }
-    Ok(())
-}
-
-/// One cell's run in the selected mode (with its Rerun recording in fast mode), its metrics,
-/// and the seconds it took.
-fn run_cell(
-    args: &Args,
-    base: &Scenario,
-    bin_dir: &Path,
-    cell: &Cell,
-) -> anyhow::Result<(Vec<TraceRow>, Metrics, f64)> {
-    let text = cell_scenario(base, cell)?;
-    let scenario = Scenario::parse(&text, &args.out.join(format!("{}.toml", cell.name())))?;
-    let t0 = Instant::now();
-    let trace = match args.mode {
-        Mode::Fast => fast_run(&scenario)?,
-        Mode::Process if args.reuse_runs => {
-            recorded_run(&text, &args.out.join("runs").join(cell.name()))?
-        }
-        Mode::Process => process_run(&text, bin_dir, &args.out.join("runs"), &cell.name())?,
-    };
-    let reference = reference_of(&scenario)?;
-    if args.mode == Mode::Fast && !args.no_rrd {
-        let runs = args.out.join("runs");
-        std::fs::create_dir_all(&runs)?;
-        write_rrd(
-            &runs.join(format!("{}.rrd", cell.name())),
-            &cell.name(),
-            &trace,
-            &reference,
-        )?;
-    }
-    let m = metrics(
-        &trace,
-        &reference,
-        scenario.rig()?.coil_limits().coil_resistance_ohm,
-    );
-    Ok((trace, m, t0.elapsed().as_secs_f64()))
-}
-
-/// results.csv and table.md (also printed).
-fn write_tables(
-    args: &Args,
-    base: &Scenario,
-    outcomes: &[Outcome],
-    mode: &str,
-) -> anyhow::Result<()> {
-    report::write_csv(outcomes, &args.out.join("results.csv"))?;
-    let rig = base.rig()?;
-    // The paper's numbers and targets apply to the paper's rig only.
-    let on_paper_rig = rig.path == fieldmaps::rigfile::paper_rig_path();
-    let table = report::markdown_table(
-        outcomes,
-        &format!(
-            "{mode}, {} ms frame period, {}, rig {} ({})",
-            base.run.frame_period_ms,
-            latency_note(base),
-            rig.name,
-            rig.path
-                .strip_prefix(fieldmaps::data_root())
-                .unwrap_or(&rig.path)
-                .display()
-        ),
-        on_paper_rig,
-    );
-    let table = if on_paper_rig {
-        table + &report::target_checks(outcomes)
-    } else {
-        table
-    };
-    std::fs::write(args.out.join("table.md"), &table)?;
-    println!("{table}");
-    Ok(())
-}
-
-/// The metric bar charts and, per condition, the first trials' trajectories.
-fn write_figures(
-    args: &Args,
-    base: &Scenario,
-    outcomes: &[Outcome],
-    traces: &FirstTrials,
-) -> anyhow::Result<()> {
-    use report::BarMetric;
-    let bars: [(BarMetric, &[&str], &str, &str); 4] = [
-        (
-            BarMetric::Rmse,
-            &[],
-            "RMSE by condition and controller (mean of trials)",
-            "rmse_bars.png",
-        ),
-        (
-            BarMetric::P95,
-            &[],
-            "P95 error by condition and controller (mean of trials)",
-            "p95_bars.png",
-        ),
-        (
-            BarMetric::Max,
-            &[],
-            "Max error by condition and controller (mean of trials)",
-            "max_bars.png",
-        ),
-        (
-            BarMetric::Rmse,
-            &["smc-dob", "smc", "smc-dob-auto", "smc-auto"],
-            "DOB ablation: RMSE with and without the observer",
-            "dob_ablation.png",
-        ),
-    ];
-    for (metric, only, title, file) in bars {
-        report::metric_bars(outcomes, metric, only, title, &args.out.join(file))
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
-    }
-    let reference = reference_of(base)?;
-    let mut conditions: Vec<(i64, String)> = traces
-        .iter()
-        .map(|(c, _)| ((c.viscosity_cp * 10.0) as i64, c.flow.label().to_string()))
-        .collect();
-    conditions.sort();
-    conditions.dedup();
-    for (v, flow) in conditions {
-        let mut runs: Vec<(String, Vec<TraceRow>)> = traces
-            .iter()
-            .filter(|(c, _)| (c.viscosity_cp * 10.0) as i64 == v && c.flow.label() == flow)
-            .map(|(c, t)| (c.controller.clone(), t.clone()))
-            .collect();
-        runs.sort_by(|a, b| a.0.cmp(&b.0));
-        let title = format!("{} cP, {flow}", v as f64 / 10.0);
-        let file = format!(
-            "traces_{}cp_{}.png",
-            v as f64 / 10.0,
-            flow.replace([' ', '/'], "")
-        );
-        report::traces_figure(
-            &runs,
-            &reference,
-            &base.rig()?.phantom.mask,
-            &title,
-            &args.out.join(file),
-        )
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    }
-    Ok(())
+    Ok(cases.into_iter().map(CellSpec::Robustness).collect())
 }

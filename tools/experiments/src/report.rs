@@ -7,7 +7,9 @@ use std::path::Path;
 
 use plotters::prelude::*;
 
-use crate::{Cell, FlowSetting, Metrics, TraceRow};
+use millinav_kit::scenario::Scenario;
+
+use crate::{reference_of, Cell, FlowSetting, Metrics, TraceRow};
 
 /// One finished run.
 #[derive(Debug, Clone)]
@@ -539,5 +541,112 @@ pub fn traces_figure(
         ))?;
     }
     root.present()?;
+    Ok(())
+}
+
+/// The run settings line of a matrix's table: mode, frame period, camera latency and whether
+/// control compensates it, the twin's coil gain error, and the rig.
+pub fn table_header(mode: &str, base: &Scenario) -> anyhow::Result<String> {
+    let get = |path: &[&str]| {
+        path.iter()
+            .try_fold(None::<&toml::Value>, |at, key| {
+                let table = match at {
+                    None => Some(&base.sections),
+                    Some(value) => value.as_table(),
+                };
+                table.and_then(|t| t.get(*key)).map(Some)
+            })
+            .flatten()
+    };
+    let frames = get(&["plant", "camera", "latency_frames"])
+        .and_then(toml::Value::as_integer)
+        .unwrap_or(0);
+    let compensated = get(&["control", "latency", "compensate"])
+        .and_then(toml::Value::as_bool)
+        .unwrap_or(true);
+    let gain_error = get(&["plant", "physics", "coil_gain_error_std"])
+        .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+        .unwrap_or(millinav_plant::model::PlantPhysicsConfig::default().coil_gain_error_std);
+    let rig = base.rig()?;
+    Ok(format!(
+        "{mode}, {} ms frame period, {} ms extra camera latency ({}), per-coil gain error σ {:.0} % \
+         unknown to control, rig {} ({})",
+        base.run.frame_period_ms,
+        frames as f64 * base.run.frame_period_ms,
+        if compensated {
+            "compensated"
+        } else {
+            "not compensated"
+        },
+        gain_error * 100.0,
+        rig.name,
+        rig.path
+            .strip_prefix(fieldmaps::data_root())
+            .unwrap_or(&rig.path)
+            .display()
+    ))
+}
+
+/// The metric bar charts and, per condition, the first trials' trajectories, into `out`.
+pub fn write_figures(
+    base: &Scenario,
+    outcomes: &[Outcome],
+    traces: &[(Cell, Vec<TraceRow>)],
+    out: &Path,
+) -> anyhow::Result<()> {
+    let bars: [(BarMetric, &[&str], &str, &str); 4] = [
+        (
+            BarMetric::Rmse,
+            &[],
+            "RMSE by condition and controller (mean of trials)",
+            "rmse_bars.png",
+        ),
+        (
+            BarMetric::P95,
+            &[],
+            "P95 error by condition and controller (mean of trials)",
+            "p95_bars.png",
+        ),
+        (
+            BarMetric::Max,
+            &[],
+            "Max error by condition and controller (mean of trials)",
+            "max_bars.png",
+        ),
+        (
+            BarMetric::Rmse,
+            &["smc-dob", "smc", "smc-dob-auto", "smc-auto"],
+            "DOB ablation: RMSE with and without the observer",
+            "dob_ablation.png",
+        ),
+    ];
+    for (metric, only, title, file) in bars {
+        metric_bars(outcomes, metric, only, title, &out.join(file))
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    let reference = reference_of(base)?;
+    let mask = &base.rig()?.phantom.mask;
+    let mut conditions: Vec<(i64, String)> = traces
+        .iter()
+        .map(|(c, _)| ((c.viscosity_cp * 10.0) as i64, c.flow.label().to_string()))
+        .collect();
+    conditions.sort();
+    conditions.dedup();
+    for (v, flow) in conditions {
+        let mut runs: Vec<(String, Vec<TraceRow>)> = traces
+            .iter()
+            .filter(|(c, _)| (c.viscosity_cp * 10.0) as i64 == v && c.flow.label() == flow)
+            .map(|(c, t)| (c.controller.clone(), t.clone()))
+            .collect();
+        runs.sort_by(|a, b| a.0.cmp(&b.0));
+        let title = format!("{} cP, {flow}", v as f64 / 10.0);
+        let file = format!(
+            "traces_{}cp_{}.png",
+            v as f64 / 10.0,
+            flow.replace([' ', '/'], "")
+        );
+        traces_figure(&runs, &reference, mask, &title, &out.join(file))
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
     Ok(())
 }

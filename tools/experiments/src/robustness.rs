@@ -14,7 +14,10 @@ use crate::report::paper_smc_dob_rmse_mm;
 use crate::{cell_scenario, set_in_table, Cell, FlowSetting, Metrics};
 
 /// A disturbance the matrix varies.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "kebab-case")]
 pub enum Axis {
     /// `[plant.physics] pulsation_hz` (the controller is told the pump's rate).
     PulsationHz,
@@ -70,7 +73,8 @@ impl Axis {
 }
 
 /// One run of the robustness matrix.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Case {
     pub axis: Axis,
     pub level: f64,
