@@ -9,6 +9,7 @@
 pub mod campaign;
 pub mod report;
 pub mod robustness;
+pub mod runner;
 pub mod slurm;
 
 use std::collections::VecDeque;

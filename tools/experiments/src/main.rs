@@ -2,17 +2,15 @@
 //! on this machine or as a Slurm job array, with tables and figures.
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Mutex;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use fieldmaps::rigfile::Rig;
-use indicatif::{ProgressBar, ProgressStyle};
 use millinav_experiments::campaign::{
-    Campaign, CellSpec, MatrixKind, MatrixPlan, Mode, Planned, Progress, RunContext,
+    Campaign, CellSpec, MatrixKind, MatrixPlan, Mode, Planned, Progress,
 };
+use millinav_experiments::runner::{self, TaskCells, TaskEnd};
 use millinav_experiments::slurm::{self, SlurmSettings};
 use millinav_experiments::{report, rig_matrix, robustness, set_in_table};
 use millinav_kit::scenario::Scenario;
@@ -355,19 +353,12 @@ fn run_matrix(args: &MatrixArgs) -> anyhow::Result<ExitCode> {
     }
     match settings {
         None => {
-            let threads = local_threads(mode, args.threads);
+            let threads = runner::threads_for(mode, args.threads);
             let build = campaign.manifest.build.sha256.clone();
-            run_locally(&campaign, &build, unfinished, threads)?;
+            runner::run_here(&campaign, &build, unfinished, threads)?;
             finish(&campaign, &campaign.local_progress(), start, threads)
         }
         Some(settings) => submit_and_follow(&campaign, &settings, &unfinished, args.no_wait, start),
-    }
-}
-
-fn local_threads(mode: Mode, threads: usize) -> usize {
-    match mode {
-        Mode::Fast => threads.max(1),
-        Mode::Process => 1,
     }
 }
 
@@ -404,46 +395,8 @@ fn submit_and_follow(
         );
         return Ok(ExitCode::SUCCESS);
     }
-    let progress = wait_for(campaign, settings.poll_s)?;
+    let progress = runner::wait_for_slurm(campaign, settings.poll_s)?;
     finish(campaign, &progress, start, 0)
-}
-
-/// Looks at the queue every `poll_s` with a progress bar until nothing of the campaign is
-/// left in it. A few failed looks in a row (a busy controller) are tolerated.
-fn wait_for(campaign: &Campaign, poll_s: f64) -> anyhow::Result<Progress> {
-    let bar = progress_bar(campaign.manifest.cells.len());
-    let mut failed_looks = 0;
-    loop {
-        match slurm::progress(campaign) {
-            Ok(p) => {
-                failed_looks = 0;
-                bar.set_position(p.done as u64);
-                bar.set_message(format!(
-                    "{} running, {} pending, {} failed",
-                    p.running,
-                    p.pending,
-                    p.failed.len()
-                ));
-                if !p.in_flight() {
-                    bar.finish();
-                    return Ok(p);
-                }
-            }
-            Err(e) if failed_looks < 10 => {
-                failed_looks += 1;
-                bar.println(format!("looking at the queue failed (will retry): {e:#}"));
-            }
-            Err(e) => return Err(e),
-        }
-        std::thread::sleep(Duration::from_secs_f64(poll_s));
-    }
-}
-
-fn progress_bar(len: usize) -> ProgressBar {
-    ProgressBar::new(len as u64).with_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    )
 }
 
 /// Collects a campaign whose cells all finished, or names the ones that did not.
@@ -485,202 +438,21 @@ fn report_failures(campaign: &Campaign, progress: &Progress) {
     );
 }
 
-/// Runs `cells` on `threads` workers here, each into its result file; the failures are
-/// written beside them and counted, not fatal to the others.
-fn run_locally(
-    campaign: &Campaign,
-    build_sha256: &str,
-    cells: Vec<usize>,
-    threads: usize,
-) -> anyhow::Result<()> {
-    let never = AtomicBool::new(false);
-    let context = RunContext {
-        build_sha256,
-        terminated: &never,
-        slurm_task: None,
-    };
-    run_parallel(
-        cells,
-        threads,
-        |&i, result: &Result<millinav_experiments::campaign::CellResult, String>| {
-            let name = campaign.manifest.cells[i].name();
-            match result {
-                Ok(r) => format!("{name} RMSE {:.2} mm", r.metrics.rmse_mm),
-                Err(e) => format!("{name} failed: {e}"),
-            }
-        },
-        |&i| Ok(campaign.run_cell(i, &context).map_err(|e| format!("{e:#}"))),
-    )?;
-    Ok(())
-}
-
-/// Runs `work` on every item on `threads` workers with a progress bar (`label` names an item
-/// and its result); returns the items with their results, in no particular order.
-fn run_parallel<T: Send, R: Send>(
-    items: Vec<T>,
-    threads: usize,
-    label: impl Fn(&T, &R) -> String + Sync,
-    work: impl Fn(&T) -> anyhow::Result<R> + Sync,
-) -> anyhow::Result<Vec<(T, R)>> {
-    let bar = progress_bar(items.len());
-    let done: Mutex<Vec<(T, R)>> = Mutex::new(Vec::new());
-    let queue = Mutex::new(items);
-    let poisoned = || anyhow::anyhow!("poisoned");
-    let worker = || -> anyhow::Result<()> {
-        loop {
-            let Some(item) = queue.lock().map_err(|_| poisoned())?.pop() else {
-                return Ok(());
-            };
-            let result = work(&item)?;
-            bar.set_message(label(&item, &result));
-            bar.inc(1);
-            done.lock().map_err(|_| poisoned())?.push((item, result));
-        }
-    };
-    std::thread::scope(|s| -> anyhow::Result<()> {
-        let handles: Vec<_> = (0..threads).map(|_| s.spawn(worker)).collect();
-        for h in handles {
-            h.join().map_err(|_| anyhow::anyhow!("worker panicked"))??;
-        }
-        Ok(())
-    })?;
-    bar.finish();
-    done.into_inner().map_err(|_| poisoned())
-}
-
-/// Raised by SIGTERM (Slurm's time limit, preemption, scancel): `run-cell` stops, writes no
-/// result, and leaves no shared memory behind.
-static TERMINATED: AtomicBool = AtomicBool::new(false);
-
-extern "C" fn on_sigterm(_: nix::libc::c_int) {
-    TERMINATED.store(true, Ordering::SeqCst);
-}
-
-fn install_sigterm_handler() -> anyhow::Result<()> {
-    use nix::sys::signal::{sigaction, SaFlags, SigAction, SigHandler, SigSet, Signal};
-    let action = SigAction::new(
-        SigHandler::Handler(on_sigterm),
-        SaFlags::SA_RESTART,
-        SigSet::empty(),
-    );
-    // SAFETY: the handler only stores to an atomic, which is async-signal-safe.
-    unsafe { sigaction(Signal::SIGTERM, &action) }.context("installing the SIGTERM handler")?;
-    Ok(())
-}
-
 /// `run-cell`: the cells of one array task (or one named cell), one result file each.
 fn run_cell(args: &RunCellArgs) -> anyhow::Result<ExitCode> {
-    install_sigterm_handler()?;
     let campaign = Campaign::open(&args.campaign)?;
-    let manifest = &campaign.manifest;
-    let cells: Vec<usize> = match (&args.cell, args.array_task) {
-        (Some(name), _) => vec![manifest
-            .cells
-            .iter()
-            .position(|c| &c.name() == name)
-            .with_context(|| {
-                format!(
-                    "no cell {name:?} in the campaign {} (cells look like {})",
-                    campaign.dir.display(),
-                    manifest.cells[0].name()
-                )
-            })?],
-        (None, Some(task)) => {
-            let per_task = manifest.slurm.as_ref().map_or(1, |s| s.cells_per_task);
-            let range = slurm::cells_of_task(task, per_task, manifest.cells.len());
-            anyhow::ensure!(
-                !range.is_empty(),
-                "array task {task} has no cells: the campaign has {} cells, {per_task} per task",
-                manifest.cells.len()
-            );
-            range.collect()
-        }
+    let selection = match (&args.cell, args.array_task) {
+        (Some(name), _) => TaskCells::Named(name),
+        (None, Some(task)) => TaskCells::ArrayTask(task),
         (None, None) => anyhow::bail!("give --array-task or --cell"),
     };
-    let slurm_task = match (
-        std::env::var("SLURM_ARRAY_JOB_ID"),
-        std::env::var("SLURM_ARRAY_TASK_ID"),
-    ) {
-        (Ok(job), Ok(task)) => Some(format!("{job}_{task}")),
-        _ => None,
-    };
-    if manifest.mode == Mode::Process {
-        // What tasks killed outright on this node left behind.
-        let removed = millinav_experiments::sweep_stale_iox(&campaign.iox_tag());
-        if removed > 0 {
-            eprintln!("removed {removed} iceoryx2 files of killed runs of this campaign");
-        }
-    } else {
-        // A fast-mode cell cannot stop half way: leave at once, writing nothing.
-        std::thread::spawn(|| loop {
-            if TERMINATED.load(Ordering::SeqCst) {
-                eprintln!("terminated by SIGTERM: no result written");
-                std::process::exit(143);
-            }
-            std::thread::sleep(Duration::from_millis(100));
-        });
-    }
-    let build = match campaign.check_build() {
-        Ok(hash) => hash,
-        Err(e) => {
-            // Every cell of the task says why it did not run.
-            for &i in &cells {
-                campaign.mark_failed(i, &format!("{e:#}"));
-            }
-            return Err(e);
-        }
-    };
-    let todo: Vec<usize> = cells
-        .into_iter()
-        .filter(|&i| campaign.cell_files(i) != millinav_experiments::campaign::CellFiles::Done)
-        .collect();
-    let threads = match manifest.mode {
-        Mode::Process => 1,
-        Mode::Fast => args
-            .threads
-            .or_else(|| std::env::var("SLURM_CPUS_PER_TASK").ok()?.parse().ok())
-            .unwrap_or(1)
-            .max(1),
-    };
-    let context = RunContext {
-        build_sha256: &build,
-        terminated: &TERMINATED,
-        slurm_task,
-    };
-    let results = run_parallel(
-        todo,
-        threads,
-        |&i, result: &Result<f64, String>| {
-            let name = manifest.cells[i].name();
-            match result {
-                Ok(rmse) => format!("{name} RMSE {rmse:.2} mm"),
-                Err(e) => format!("{name} failed: {e}"),
-            }
+    Ok(
+        match runner::run_task(&campaign, selection, args.threads)? {
+            TaskEnd::Finished => ExitCode::SUCCESS,
+            TaskEnd::CellsFailed => ExitCode::from(1),
+            TaskEnd::Terminated => ExitCode::from(143),
         },
-        |&i| {
-            if TERMINATED.load(Ordering::SeqCst) {
-                return Ok(Err(millinav_experiments::Terminated.to_string()));
-            }
-            Ok(campaign
-                .run_cell(i, &context)
-                .map(|r| r.metrics.rmse_mm)
-                .map_err(|e| format!("{e:#}")))
-        },
-    )?;
-    let mut failed = 0;
-    for (i, result) in &results {
-        if let Err(e) = result {
-            failed += 1;
-            eprintln!("{}: {e}", manifest.cells[*i].name());
-        }
-    }
-    Ok(if TERMINATED.load(Ordering::SeqCst) {
-        ExitCode::from(143)
-    } else if failed > 0 {
-        ExitCode::from(1)
-    } else {
-        ExitCode::SUCCESS
-    })
+    )
 }
 
 /// `status`: the campaign's progress, and the failed or missing cells with why.
@@ -688,7 +460,7 @@ fn status(dir: &Path, wait: bool) -> anyhow::Result<ExitCode> {
     let campaign = Campaign::open(dir)?;
     let progress = match &campaign.manifest.slurm {
         None => campaign.local_progress(),
-        Some(settings) if wait => wait_for(&campaign, settings.poll_s)?,
+        Some(settings) if wait => runner::wait_for_slurm(&campaign, settings.poll_s)?,
         Some(_) => slurm::progress(&campaign)?,
     };
     println!("{}: {}", campaign.dir.display(), progress.line());
@@ -719,9 +491,9 @@ fn resume(dir: &Path, no_wait: bool, threads: usize, args: &SlurmArgs) -> anyhow
             campaign.dir.display()
         );
         report_resumed(&campaign, &campaign.local_progress());
-        let threads = local_threads(campaign.manifest.mode, threads);
+        let threads = runner::threads_for(campaign.manifest.mode, threads);
         campaign.clear_failures(&unfinished);
-        run_locally(&campaign, &build, unfinished, threads)?;
+        runner::run_here(&campaign, &build, unfinished, threads)?;
         return finish(&campaign, &campaign.local_progress(), start, threads);
     };
     let settings = args.settings(old.clone())?;

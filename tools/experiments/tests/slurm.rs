@@ -11,6 +11,8 @@
 //! Where it cannot be root or Slurm cannot start, it says SKIPPED with the reason; under
 //! `CI=true` (where the test command installs Slurm) it fails instead.
 
+mod common;
+use common::{text, without_wall_time};
 use std::io::Write as _;
 use std::os::unix::fs::PermissionsExt;
 use std::os::unix::process::CommandExt;
@@ -266,15 +268,6 @@ fn wait_until(limit: Duration, mut ready: impl FnMut() -> bool) -> Result<(), ()
     Err(())
 }
 
-fn text(output: &Output) -> String {
-    format!(
-        "exit {}\n--- stdout:\n{}\n--- stderr:\n{}",
-        output.status,
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    )
-}
-
 /// The job id `experiments --backend slurm` printed.
 fn job_id(output: &Output) -> String {
     let stdout = String::from_utf8_lossy(&output.stdout);
@@ -284,14 +277,6 @@ fn job_id(output: &Output) -> String {
         .nth(1)
         .unwrap_or_else(|| panic!("no job id in {}", text(output)))
         .to_owned()
-}
-
-/// results.csv without its wall-time column (the one column that differs between runs).
-fn without_wall_time(csv: &str) -> String {
-    csv.lines()
-        .map(|l| l.rsplit_once(',').map_or(l, |(rest, _)| rest))
-        .collect::<Vec<_>>()
-        .join("\n")
 }
 
 /// Shared-memory files and iceoryx2 roots of a campaign (its tag is "mx" + 8 hex digits of the

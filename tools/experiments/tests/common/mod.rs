@@ -1,0 +1,22 @@
+//! Helpers shared by the campaign tests.
+
+use std::process::Output;
+
+/// A finished command's exit status and output, for assertion messages.
+pub fn text(output: &Output) -> String {
+    format!(
+        "exit {}\n--- stdout:\n{}\n--- stderr:\n{}",
+        output.status,
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    )
+}
+
+/// results.csv without its last column, the wall time (the one column that differs between two
+/// runs of the same cells).
+pub fn without_wall_time(csv: &str) -> String {
+    csv.lines()
+        .map(|l| l.rsplit_once(',').map_or(l, |(rest, _)| rest))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
