@@ -29,7 +29,7 @@ use crate::report::{self, Outcome};
 use crate::robustness::{self, Case, CaseOutcome};
 use crate::slurm::SlurmSettings;
 use crate::{
-    cell_scenario, fast_run, metrics, process_run, read_truth, recorded_run, reference_of,
+    cell_scenario, fast_run, metrics, process_run_isolated, read_truth, recorded_run, reference_of,
     scenario_document, write_rrd, Cell, Metrics, RunIsolation, TraceRow,
 };
 
@@ -818,7 +818,7 @@ impl Campaign {
             Mode::Process if self.manifest.reuse_runs => recorded_run(&text, &runs.join(name))?,
             Mode::Process => {
                 let tag = self.iox_tag();
-                process_run(
+                process_run_isolated(
                     &text,
                     &self.manifest.bin_dir,
                     &runs,

@@ -428,10 +428,31 @@ fn remove_shm_with_prefix(prefix: &str) {
 const SUPERVISOR_SHUTDOWN: std::time::Duration = std::time::Duration::from_secs(20);
 
 /// Runs a scenario through the real process set (`millinav run`, lockstep) and reads back
+/// the plant's ground truth ([`process_run_isolated`] under the tag `mx`, never stopped).
+pub fn process_run(
+    scenario_text: &str,
+    bin_dir: &Path,
+    work_dir: &Path,
+    name: &str,
+) -> anyhow::Result<Vec<TraceRow>> {
+    let never = AtomicBool::new(false);
+    process_run_isolated(
+        scenario_text,
+        bin_dir,
+        work_dir,
+        name,
+        RunIsolation {
+            iox_tag: "mx",
+            terminated: &never,
+        },
+    )
+}
+
+/// Runs a scenario through the real process set (`millinav run`, lockstep) and reads back
 /// the plant's ground truth. The run's iceoryx2 prefix and root are its own, and both are
 /// removed when it ends, however it ends; when `isolation.terminated` is raised the set is shut
 /// down and the run fails with [`Terminated`].
-pub fn process_run(
+pub fn process_run_isolated(
     scenario_text: &str,
     bin_dir: &Path,
     work_dir: &Path,

@@ -89,11 +89,16 @@ pub fn run_here(
     Ok(())
 }
 
+/// The longest a result written on a compute node may take to show on this one (NFS
+/// attribute caching).
+const RESULT_VISIBILITY_GRACE_S: f64 = 5.0;
+
 /// Looks at the queue every `poll_s` with a progress bar until nothing of the campaign is
 /// left in it. A few failed looks in a row (a busy controller) are tolerated.
 pub fn wait_for_slurm(campaign: &Campaign, poll_s: f64) -> anyhow::Result<Progress> {
     let bar = progress_bar(campaign.manifest.cells.len());
     let mut failed_looks = 0;
+    let mut confirmed = false;
     loop {
         match slurm::progress(campaign) {
             Ok(p) => {
@@ -106,8 +111,17 @@ pub fn wait_for_slurm(campaign: &Campaign, poll_s: f64) -> anyhow::Result<Progre
                     p.failed.len()
                 ));
                 if !p.in_flight() {
-                    bar.finish();
-                    return Ok(p);
+                    if p.failed.is_empty() || confirmed {
+                        bar.finish();
+                        return Ok(p);
+                    }
+                    // On a shared file system a result can show here a moment after its task
+                    // left the queue: look once more before calling a cell failed.
+                    confirmed = true;
+                    std::thread::sleep(Duration::from_secs_f64(
+                        poll_s.min(RESULT_VISIBILITY_GRACE_S),
+                    ));
+                    continue;
                 }
             }
             Err(e) if failed_looks < 10 => {

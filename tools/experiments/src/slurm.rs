@@ -3,6 +3,7 @@
 //! directory. Progress comes from `squeue` and the result files; a task's end state from `sacct`
 //! where the cluster keeps accounting, else from `scontrol` while the controller remembers it.
 
+use std::cell::OnceCell;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -107,8 +108,8 @@ impl SlurmSettings {
         if let Some(time) = &self.time {
             anyhow::ensure!(
                 valid_time_limit(time),
-                "time {time:?} is not a Slurm time limit (MM, MM:SS, HH:MM:SS, D-HH, D-HH:MM or \
-                 D-HH:MM:SS)"
+                "time {time:?} is not a Slurm time limit (MM, MM:SS, HH:MM:SS, D-HH, D-HH:MM, \
+                 D-HH:MM:SS or UNLIMITED)"
             );
         }
         anyhow::ensure!(self.cpus_per_task >= 1, "cpus_per_task must be at least 1");
@@ -159,6 +160,9 @@ impl SlurmSettings {
 
 /// Whether `text` is one of the forms `sbatch --time` takes.
 pub fn valid_time_limit(text: &str) -> bool {
+    if matches!(text, "UNLIMITED" | "INFINITE") {
+        return true;
+    }
     let numbers = |part: &str, count: std::ops::RangeInclusive<usize>| {
         let fields: Vec<&str> = part.split(':').collect();
         count.contains(&fields.len())
@@ -431,7 +435,15 @@ pub fn queued(jobs: &[String]) -> anyhow::Result<BTreeMap<(String, usize), Queue
         return Ok(out);
     }
     // Without -j: squeue refuses the whole call when one job id has left the controller.
-    let listing = slurm_command("squeue", &["-h", "-r", "--me", "-o", "%F|%K|%T|%r"])?;
+    let format = ["-h", "-r", "-o", "%F|%K|%T|%r"];
+    let listing = match slurm_command("squeue", &[&format[..], &["--me"]].concat()) {
+        Ok(listing) => listing,
+        // Slurm before 20.11 has no --me.
+        Err(e) => match std::env::var("USER").or_else(|_| std::env::var("LOGNAME")) {
+            Ok(user) => slurm_command("squeue", &[&format[..], &["-u", &user]].concat())?,
+            Err(_) => return Err(e),
+        },
+    };
     for line in listing.lines() {
         let fields: Vec<&str> = line.trim().split('|').collect();
         let [job, task, state, reason] = fields[..] else {
@@ -453,17 +465,38 @@ pub fn queued(jobs: &[String]) -> anyhow::Result<BTreeMap<(String, usize), Queue
     Ok(out)
 }
 
-/// How an array task that left the queue ended (`COMPLETED`, `CANCELLED`, `TIMEOUT`,
-/// `PREEMPTED`, `FAILED`, `NODE_FAIL`, `OUT_OF_MEMORY`…): from `sacct` where the cluster keeps
-/// accounting, else from `scontrol` while the controller remembers the job.
-pub fn end_state(job: &str, task: usize) -> Option<String> {
-    let id = format!("{job}_{task}");
-    if let Ok(text) = slurm_command("sacct", &["-n", "-P", "-X", "-j", &id, "-o", "State"]) {
-        if let Some(state) = text.lines().map(str::trim).find(|l| !l.is_empty()) {
-            return Some(state.to_owned());
+/// How the campaign's array tasks that left the queue ended (`COMPLETED`, `CANCELLED`,
+/// `TIMEOUT`, `PREEMPTED`, `FAILED`, `NODE_FAIL`, `OUT_OF_MEMORY`…), from one `sacct` call; `None`
+/// where the cluster keeps no accounting.
+fn accounted_end_states(jobs: &[String]) -> Option<BTreeMap<(String, usize), String>> {
+    if jobs.is_empty() {
+        return Some(BTreeMap::new());
+    }
+    let ids = jobs.join(",");
+    let text = slurm_command(
+        "sacct",
+        &["-n", "-P", "-X", "-j", &ids, "-o", "JobID,State"],
+    )
+    .ok()?;
+    let mut states = BTreeMap::new();
+    for line in text.lines() {
+        let Some((id, state)) = line.trim().split_once('|') else {
+            continue;
+        };
+        let Some((job, task)) = id.split_once('_') else {
+            continue;
+        };
+        if let Ok(task) = task.parse::<usize>() {
+            states.insert((job.to_owned(), task), state.to_owned());
         }
     }
-    let text = slurm_command("scontrol", &["-o", "show", "job", &id]).ok()?;
+    Some(states)
+}
+
+/// How one array task ended, from `scontrol` while the controller remembers it (clusters
+/// without accounting).
+fn remembered_end_state(job: &str, task: usize) -> Option<String> {
+    let text = slurm_command("scontrol", &["-o", "show", "job", &format!("{job}_{task}")]).ok()?;
     text.split_whitespace()
         .find_map(|field| field.strip_prefix("JobState="))
         .map(str::to_owned)
@@ -484,6 +517,7 @@ pub fn progress(campaign: &Campaign) -> anyhow::Result<Progress> {
         }
     }
     let logs = campaign.dir.join("slurm").join("logs");
+    let accounted = OnceCell::new();
     let mut end_states: BTreeMap<(String, usize), Option<String>> = BTreeMap::new();
     let cells = &campaign.manifest.cells;
     let mut p = Progress {
@@ -530,9 +564,15 @@ pub fn progress(campaign: &Campaign) -> anyhow::Result<Progress> {
             CellFiles::Done => continue,
         };
         if let Some(s) = submission {
-            let state = end_states
-                .entry((s.job_id.clone(), task))
-                .or_insert_with(|| end_state(&s.job_id, task));
+            let state =
+                end_states
+                    .entry((s.job_id.clone(), task))
+                    .or_insert_with(|| {
+                        match accounted.get_or_init(|| accounted_end_states(&jobs)) {
+                            Some(states) => states.get(&(s.job_id.clone(), task)).cloned(),
+                            None => remembered_end_state(&s.job_id, task),
+                        }
+                    });
             let log = logs.join(format!("{}_{task}.out", s.job_id));
             match state {
                 Some(state) => {
@@ -588,7 +628,15 @@ mod tests {
 
     #[test]
     fn time_limits_in_slurms_forms() {
-        for ok in ["30", "30:00", "01:30:00", "2-0", "2-12:00", "1-00:00:00"] {
+        for ok in [
+            "30",
+            "30:00",
+            "01:30:00",
+            "2-0",
+            "2-12:00",
+            "1-00:00:00",
+            "UNLIMITED",
+        ] {
             assert!(valid_time_limit(ok), "{ok}");
         }
         for bad in ["", "1h", "1:2:3:4", "-5", "2-", "a-1", "1:", "30 min"] {
