@@ -61,8 +61,9 @@ impl Default for VisionConfig {
 }
 
 /// The committed model the service runs, relative to the workspace root: `FLOAT_MODEL`
-/// quantized to int8 (tools/unet/quantize.py; keypoint head kept in float), 2x faster on the CPU
-/// with the same test-set accuracy.
+/// quantized to int8 with 7-bit weights (tools/unet/quantize.py; keypoint head kept in float):
+/// the float model's test-set accuracy on CPUs with and without VNNI (measured here without);
+/// faster than float only where the CPU has VNNI.
 pub const DEFAULT_MODEL: &str = "tools/unet/model/unet_roi96_int8.onnx";
 
 /// The trained float32 model `DEFAULT_MODEL` was quantized from.
