@@ -117,8 +117,8 @@ pub struct BuildId {
 
 impl BuildId {
     /// Hashes the experiments binary, in process mode every `millinav*` binary beside it (the
-    /// supervisor and the services it launches), the rig file and every file it names, and
-    /// every file a cell's scenario names.
+    /// supervisor and the services it launches) and the default UNet model, the rig file and
+    /// every file it names, and every file a cell's scenario names.
     pub fn of(
         mode: Mode,
         bin_dir: &Path,
@@ -139,6 +139,13 @@ impl BuildId {
                 if is_binary {
                     paths.push(path);
                 }
+            }
+        }
+        if mode == Mode::Process {
+            // Vision runs the committed model unless a scenario names another (hashed below).
+            let model = root.join(millinav_vision::DEFAULT_MODEL);
+            if model.is_file() {
+                paths.push(model);
             }
         }
         paths.extend(rig_files(rig)?);
