@@ -506,10 +506,11 @@ fn campaigns_run_through_a_single_node_slurm_cluster() {
     assert!(leftovers.is_empty(), "the killed task left {leftovers:?}");
     let resumed = cluster.experiments(&["resume", &out("process")]);
     assert!(resumed.status.success(), "{}", text(&resumed));
-    // The cell has its result now (whether PID completes this short path through the process
-    // set is the twin's business, not the campaign's).
     let table = read("process", "table.md");
-    assert!(table.contains("| 20 cP, static | pid | 1 | "), "{table}");
+    assert!(
+        table.contains("| 20 cP, static | pid | 1 | 1/1 |"),
+        "{table}"
+    );
     assert!(work
         .join("process/campaign/results/20cp_static_pid_s1.toml")
         .is_file());
