@@ -85,8 +85,11 @@ impl SlurmSettings {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("reading the Slurm settings {}", path.display()))?;
         let settings: Self = toml::from_str(&text).map_err(|e| {
-            anyhow::anyhow!("{}: {}", path.display(), e.message().trim_end())
-                .context(format!("Slurm settings {}", path.display()))
+            anyhow::anyhow!(
+                "Slurm settings {}: {}",
+                path.display(),
+                e.message().trim_end()
+            )
         })?;
         settings
             .validate()
@@ -590,11 +593,30 @@ pub fn progress(campaign: &Campaign) -> anyhow::Result<Progress> {
             }
             if log.is_file() {
                 let _ = write!(why, "; log {}", log.display());
+                // A cell that failed has said why; for one that never ran, the log's last line
+                // (a failed setup command, a crash) says it.
+                if !matches!(files, CellFiles::Failed(_)) {
+                    if let Some(last) = last_line(&log) {
+                        let _ = write!(why, ": {last:?}");
+                    }
+                }
             }
         }
         p.failed.push((cell.name(), why));
     }
     Ok(p)
+}
+
+/// The last non-empty line of a task's log (what a failed setup command or a crash printed),
+/// shortened to a line of a report.
+fn last_line(log: &Path) -> Option<String> {
+    const LONGEST: usize = 160;
+    let text = std::fs::read_to_string(log).ok()?;
+    let line = text.lines().rev().map(str::trim).find(|l| !l.is_empty())?;
+    Some(match line.char_indices().nth(LONGEST) {
+        Some((cut, _)) => format!("{}…", &line[..cut]),
+        None => line.to_owned(),
+    })
 }
 
 fn first_line(text: &str) -> &str {
