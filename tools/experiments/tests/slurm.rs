@@ -296,6 +296,17 @@ fn iox_leftovers(out: &Path) -> Vec<String> {
         .collect()
 }
 
+/// Cancels array task `task` (`<job>_<n>`), waits for the campaign in `out` to leave the queue,
+/// and returns `status`'s output (which must exit 1: a cell failed) and its report.
+fn cancel_and_wait(cluster: &Cluster, task: &str, out: &str) -> (Output, String) {
+    let cancelled = cluster.slurm("scancel", &[task]).expect("scancel");
+    assert!(cancelled.status.success());
+    let status = cluster.experiments(&["status", out, "--wait"]);
+    assert_eq!(status.status.code(), Some(1), "{}", text(&status));
+    let report = String::from_utf8_lossy(&status.stderr).into_owned();
+    (status, report)
+}
+
 #[test]
 fn campaigns_run_through_a_single_node_slurm_cluster() {
     let cluster = match Cluster::start() {
@@ -405,13 +416,7 @@ fn campaigns_run_through_a_single_node_slurm_cluster() {
     );
     assert!(submitted.status.success(), "{}", text(&submitted));
     let job = job_id(&submitted);
-    let cancelled = cluster
-        .slurm("scancel", &[&format!("{job}_3")])
-        .expect("scancel");
-    assert!(cancelled.status.success());
-    let status = cluster.experiments(&["status", &out("slurm"), "--wait"]);
-    assert_eq!(status.status.code(), Some(1), "{}", text(&status));
-    let report = String::from_utf8_lossy(&status.stderr);
+    let (status, report) = cancel_and_wait(&cluster, &format!("{job}_3"), &out("slurm"));
     // Slurm keeps no record of an array task cancelled before it started (no accounting here).
     assert!(
         report.contains(&format!(
@@ -487,13 +492,7 @@ fn campaigns_run_through_a_single_node_slurm_cluster() {
         !iox_leftovers(&work.join("process")).is_empty(),
         "the running set has no shared memory?"
     );
-    let killed = cluster
-        .slurm("scancel", &[&format!("{job}_0")])
-        .expect("scancel");
-    assert!(killed.status.success());
-    let status = cluster.experiments(&["status", &out("process"), "--wait"]);
-    assert_eq!(status.status.code(), Some(1), "{}", text(&status));
-    let report = String::from_utf8_lossy(&status.stderr);
+    let (status, report) = cancel_and_wait(&cluster, &format!("{job}_0"), &out("process"));
     assert!(
         report.contains("20cp_static_pid_s1") && report.contains("SIGTERM"),
         "{}",
