@@ -65,6 +65,18 @@ impl FaultRng {
 /// The Teensy link's row in the table.
 const TEENSY_LINK: &str = "teensy-link";
 
+/// Every test here times coils-to-zero against a deadline, so none may share the two cores with
+/// another test's process set: they run one at a time (in one CI run the soak's vision SIGKILL
+/// took 168 ms against 100 + 40 ms while another fault matrix ran beside it).
+static ONE_SET_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn one_set_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    // A failed test poisons the lock; the next one still runs alone.
+    ONE_SET_AT_A_TIME
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
 /// One fault: a signal to a service process, or a link fault injected through the plant.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Fault {
@@ -276,6 +288,7 @@ fn quantiles(values: &mut [f64]) -> (f64, f64) {
 
 #[test]
 fn every_service_killed_and_hung_in_turn() {
+    let _alone = one_set_at_a_time();
     fault_matrix(
         "faultmatrix",
         &circle_scenario(150.0, 5),
@@ -287,6 +300,7 @@ fn every_service_killed_and_hung_in_turn() {
 /// planner path in still fluid: nothing in the fault handling knows which rig it drives.
 #[test]
 fn every_service_killed_and_hung_in_turn_on_the_second_rig() {
+    let _alone = one_set_at_a_time();
     let text = millinav_tests::vessel8_scenario_text(
         60.0,
         false,
@@ -360,6 +374,7 @@ fn fault_matrix(name: &str, scenario: &str, max_current_a: f64) {
 
 #[test]
 fn soak_random_kills() {
+    let _alone = one_set_at_a_time();
     let kills: usize = std::env::var("MILLINAV_SOAK_KILLS")
         .ok()
         .and_then(|v| v.parse().ok())
@@ -407,6 +422,7 @@ fn soak_random_kills() {
 
 #[test]
 fn supervisor_crash_stops_the_set_and_a_new_supervisor_cleans_up() {
+    let _alone = one_set_at_a_time();
     let mut run = RunSet::start("supcrash", &circle_scenario(20.0, 13)).expect("start");
     assert!(
         wait_tracking(&run, 0, 50, Duration::from_secs(60)),
