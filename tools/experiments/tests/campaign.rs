@@ -5,7 +5,7 @@
 //! runs or is submitted.
 
 mod common;
-use common::{text, without_wall_time};
+use common::{short_static_cells, text, without_wall_time};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -24,22 +24,18 @@ fn scratch(name: &str) -> PathBuf {
     dir
 }
 
-const MATRIX: [&str; 10] = [
-    "--base",
-    "scenarios/short.toml",
-    "--only",
-    "20cp_static",
-    "--controllers",
-    "pid",
-    "--trials",
-    "2",
-    "--no-rrd",
-    "--threads=2",
-];
+/// Two seeds of PID in the short scenario's still fluid, without recordings, on 2 threads.
+fn matrix() -> Vec<&'static str> {
+    [
+        &short_static_cells("pid", "2")[..],
+        &["--no-rrd", "--threads=2"],
+    ]
+    .concat()
+}
 
 fn run_matrix(out: &Path, extra: &[&str]) -> Output {
     let out = out.to_string_lossy().into_owned();
-    experiments(&[&MATRIX[..], &["--out", &out], extra].concat(), None)
+    experiments(&[&matrix()[..], &["--out", &out], extra].concat(), None)
 }
 
 #[test]
@@ -126,18 +122,10 @@ fn another_matrix_or_build_and_a_missing_sbatch_are_refused_before_anything_runs
     // Another matrix into the same directory.
     let other = experiments(
         &[
-            "--base",
-            "scenarios/short.toml",
-            "--only",
-            "20cp_static",
-            "--controllers",
-            "mpc",
-            "--trials",
-            "1",
-            "--no-rrd",
-            "--out",
-            &dir,
-        ],
+            &short_static_cells("mpc", "1")[..],
+            &["--no-rrd", "--out", &dir],
+        ]
+        .concat(),
         None,
     );
     assert_eq!(other.status.code(), Some(2), "{}", text(&other));
@@ -183,7 +171,7 @@ fn another_matrix_or_build_and_a_missing_sbatch_are_refused_before_anything_runs
     let nowhere = scratch("nosbatch");
     let no_sbatch = experiments(
         &[
-            &MATRIX[..],
+            &matrix()[..],
             &["--out", &nowhere.to_string_lossy(), "--backend", "slurm"],
         ]
         .concat(),

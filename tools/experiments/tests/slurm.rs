@@ -12,7 +12,7 @@
 //! `CI=true` (where the test command installs Slurm) it fails instead.
 
 mod common;
-use common::{text, without_wall_time};
+use common::{short_static_cells, text, without_wall_time};
 use std::io::Write as _;
 use std::os::unix::fs::PermissionsExt;
 use std::os::unix::process::CommandExt;
@@ -325,17 +325,7 @@ fn campaigns_run_through_a_single_node_slurm_cluster() {
     };
     let work = cluster.dir.join("work");
     let out = |name: &str| work.join(name).to_string_lossy().into_owned();
-    let fast = [
-        "--base",
-        "scenarios/short.toml",
-        "--only",
-        "20cp_static",
-        "--controllers",
-        "pid,mpc",
-        "--trials",
-        "2",
-        "--no-rrd",
-    ];
+    let fast = [&short_static_cells("pid,mpc", "2")[..], &["--no-rrd"]].concat();
 
     // The local backend: the reference table.
     let local = cluster.experiments(&[&fast[..], &["--out", &out("local")]].concat());
@@ -369,21 +359,13 @@ fn campaigns_run_through_a_single_node_slurm_cluster() {
         !work.join("bad/campaign").exists(),
         "planned although refused"
     );
-    let other_matrix = cluster.experiments(&[
-        "--base",
-        "scenarios/short.toml",
-        "--only",
-        "20cp_static",
-        "--controllers",
-        "pid",
-        "--trials",
-        "1",
-        "--no-rrd",
-        "--out",
-        &out("local"),
-        "--backend",
-        "slurm",
-    ]);
+    let other_matrix = cluster.experiments(
+        &[
+            &short_static_cells("pid", "1")[..],
+            &["--no-rrd", "--out", &out("local"), "--backend", "slurm"],
+        ]
+        .concat(),
+    );
     assert!(!other_matrix.status.success());
     assert!(
         String::from_utf8_lossy(&other_matrix.stderr).contains("another matrix"),
@@ -462,25 +444,23 @@ fn campaigns_run_through_a_single_node_slurm_cluster() {
     }
 
     // One process-mode cell, killed by Slurm while the set runs, then resumed.
-    let submitted = cluster.experiments(&[
-        "--base",
-        "scenarios/short.toml",
-        "--mode",
-        "process",
-        "--only",
-        "20cp_static",
-        "--controllers",
-        "pid",
-        "--trials",
-        "1",
-        "--out",
-        &out("process"),
-        "--backend",
-        "slurm",
-        "--no-wait",
-        "--poll-s",
-        "0.5",
-    ]);
+    let submitted = cluster.experiments(
+        &[
+            &short_static_cells("pid", "1")[..],
+            &[
+                "--mode",
+                "process",
+                "--out",
+                &out("process"),
+                "--backend",
+                "slurm",
+                "--no-wait",
+                "--poll-s",
+                "0.5",
+            ],
+        ]
+        .concat(),
+    );
     assert!(submitted.status.success(), "{}", text(&submitted));
     let job = job_id(&submitted);
     let truth = work.join("process/runs/20cp_static_pid_s1/run/truth.csv");

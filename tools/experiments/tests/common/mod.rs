@@ -20,3 +20,18 @@ pub fn without_wall_time(csv: &str) -> String {
         .collect::<Vec<_>>()
         .join("\n")
 }
+
+/// The arguments that select the short scenario's still 20 cP cells of `controllers` (comma
+/// separated) with `trials` seeds: a small matrix that runs in seconds.
+pub fn short_static_cells<'a>(controllers: &'a str, trials: &'a str) -> Vec<&'a str> {
+    vec![
+        "--base",
+        "scenarios/short.toml",
+        "--only",
+        "20cp_static",
+        "--controllers",
+        controllers,
+        "--trials",
+        trials,
+    ]
+}
