@@ -63,6 +63,19 @@ pub fn in_plane_moment(magnitude_am2: f64, heading_rad: f64) -> Vector3<f64> {
     Vector3::new(heading_rad.cos(), heading_rad.sin(), 0.0) * magnitude_am2
 }
 
+/// Wraps to [−π, π); angles already in range are returned unchanged (bit for bit).
+pub fn wrap_angle(a: f64) -> f64 {
+    if (-std::f64::consts::PI..std::f64::consts::PI).contains(&a) {
+        return a;
+    }
+    let two_pi = std::f64::consts::TAU;
+    let mut x = (a + std::f64::consts::PI) % two_pi;
+    if x < 0.0 {
+        x += two_pi;
+    }
+    x - std::f64::consts::PI
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -3,10 +3,12 @@
 //! Safety: invalid, non-finite, out-of-canal or physically impossible poses never drive the
 //! coils; the loop holds the orientation field briefly, then goes safe (zero currents).
 
+pub mod coil_gains;
 pub mod controllers;
 pub mod latency;
 pub mod reference;
 
+use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use std::sync::Arc;
@@ -16,7 +18,7 @@ use fieldmaps::allocation::{
     CoilRatings, ConstrainedSettings,
 };
 use fieldmaps::coils::CoilField;
-use fieldmaps::physics;
+use fieldmaps::physics::{self, wrap_angle};
 use fieldmaps::rig::{CoilLimits, RobotParams, SaturationCurve};
 use fieldmaps::rigfile::Rig;
 use millinav_kit::contract::ContractViolations;
@@ -31,6 +33,7 @@ use shm_schemas::{
     deadlines, services, zone, CoilCommand, ControlMode, FlowEstimate, FrameStamp, Pose, MAX_COILS,
 };
 
+use crate::coil_gains::{CoilGainEstimator, GainEstimationConfig, GainUpdate};
 use crate::controllers::{
     ControlInput, ControlTerms, Controller, ControllerKind, ForceSite, MpcGains, NominalModel,
     PidGains, SmcGains,
@@ -84,7 +87,24 @@ pub struct ControlConfig {
     /// current vector moves toward the allocation's by one factor, so the commanded force and
     /// field turn gradually instead of jumping; hold and safe are never slowed.
     pub max_current_slew_a_per_s: Option<f64>,
+    /// Online correction of the coil gains from the measured heading
+    /// (`[control.gain_estimation]`, off by default).
+    pub gain_estimation: GainEstimationConfig,
+    /// Turn the orientation field (and with it the capsule) when the coils cannot make the
+    /// asked force at the present heading, by at most this many degrees per command, toward
+    /// the heading where they come closest (none: the field stays at `field_heading_deg`, as
+    /// in the paper). The force the coils can make in one direction depends several-fold on
+    /// the magnet's heading, since F = (m·∇)B. Once the force is within reach again the field
+    /// turns back toward `field_heading_deg` as far as the force stays within reach.
+    pub field_heading_turn_deg: Option<f64>,
 }
+
+/// Candidate orientation fields are this far apart when the heading may turn.
+const FIELD_HEADING_STEP_DEG: f64 = 15.0;
+/// A force counts as made when the allocation misses it by at most this fraction.
+const FORCE_MADE_FRACTION: f64 = 0.02;
+/// A turn toward more force must miss the asked force by this fraction less than staying.
+const TURN_HYSTERESIS_FRACTION: f64 = 0.05;
 
 impl Default for ControlConfig {
     fn default() -> Self {
@@ -105,6 +125,8 @@ impl Default for ControlConfig {
             use_all_coils: false,
             latency: LatencyConfig::default(),
             max_current_slew_a_per_s: None,
+            gain_estimation: GainEstimationConfig::default(),
+            field_heading_turn_deg: None,
         }
     }
 }
@@ -163,6 +185,8 @@ pub struct Decision {
     pub fed_position_m: Vector2<f64>,
     /// The position predicted for the actuation time (whether fed or not).
     pub predicted_position_m: Vector2<f64>,
+    /// What this pose's heading did to the coil-gain estimate, when estimating.
+    pub gain_update: Option<GainUpdate>,
 }
 
 /// Port-free control loop: feed it poses (with their flow estimate), get commands.
@@ -192,7 +216,18 @@ pub struct ControlLoop {
     last_tracked: Option<(u64, [f64; MAX_COILS])>,
     /// Poses and flow estimates that broke the contract (bad flag bytes); treated as invalid.
     pub violations: ContractViolations,
+    /// Online coil-gain estimate the allocation uses (`[control.gain_estimation]`).
+    gain_estimator: Option<CoilGainEstimator>,
+    /// Actuation time and currents of the recent commands, to know which currents were in
+    /// effect when a frame was captured.
+    issued: VecDeque<(u64, [f64; MAX_COILS])>,
+    /// Heading of the orientation field commanded last (rad): `field_heading_deg` unless
+    /// `field_heading_turn_deg` lets it turn.
+    field_heading_rad: f64,
 }
+
+/// Commands remembered for matching frames to the currents in effect at their capture.
+const ISSUED_HISTORY_LEN: usize = 64;
 
 impl ControlLoop {
     pub fn new(
@@ -231,6 +266,11 @@ impl ControlLoop {
             ..model
         };
         let predictor = StatePredictor::new(config.latency.clone(), moving);
+        let config_heading = config.field_heading_deg.to_radians();
+        let gain_estimator = config
+            .gain_estimation
+            .enabled
+            .then(|| CoilGainEstimator::new(config.gain_estimation.clone(), coil_ids.clone()));
         Self {
             config,
             reference,
@@ -249,6 +289,9 @@ impl ControlLoop {
             predictor,
             last_tracked: None,
             violations: ContractViolations::default(),
+            gain_estimator,
+            issued: VecDeque::with_capacity(ISSUED_HISTORY_LEN),
+            field_heading_rad: config_heading,
         }
     }
 
@@ -280,9 +323,14 @@ impl ControlLoop {
         self.controller.name()
     }
 
+    /// The orientation field at `heading` (rad).
+    fn field_at(&self, heading: f64) -> Vector2<f64> {
+        Vector2::new(heading.cos(), heading.sin()) * (self.config.field_magnitude_mt * 1e-3)
+    }
+
+    /// The orientation field commanded now.
     fn desired_field(&self) -> Vector2<f64> {
-        let h = self.config.field_heading_deg.to_radians();
-        Vector2::new(h.cos(), h.sin()) * (self.config.field_magnitude_mt * 1e-3)
+        self.field_at(self.field_heading_rad)
     }
 
     /// Why a pose cannot be used at `actuation_ns`, if it cannot.
@@ -324,14 +372,33 @@ impl ControlLoop {
         force: &Vector2<f64>,
         slew: Option<(&[f64; MAX_COILS], f64)>,
     ) -> ([f64; MAX_COILS], Vector2<f64>) {
+        self.allocate_with_field(position, heading, self.field_heading_rad, force, slew)
+    }
+
+    /// [`Self::allocate`] with the orientation field at `field_heading` (rad), the magnet at
+    /// `heading`.
+    fn allocate_with_field(
+        &self,
+        position: &Vector2<f64>,
+        heading: f64,
+        field_heading: f64,
+        force: &Vector2<f64>,
+        slew: Option<(&[f64; MAX_COILS], f64)>,
+    ) -> ([f64; MAX_COILS], Vector2<f64>) {
         let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
         let p3 = Vector3::new(position.x, position.y, 0.0);
         let omega0 = self.config.omega0_n_per_t;
         let coil_ids = &self.coil_ids;
-        let a = actuation_matrix_from(&self.rig.coil_field, &p3, &moment, coil_ids, omega0);
+        let mut a = actuation_matrix_from(&self.rig.coil_field, &p3, &moment, coil_ids, omega0);
+        if let Some(estimator) = &self.gain_estimator {
+            // A coil's force and field both scale with its gain.
+            for (k, gain) in estimator.gains().into_iter().enumerate() {
+                a.column_mut(k).scale_mut(gain);
+            }
+        }
         // The coils make the desired field less the calibrated background, which is there anyway.
         let background = self.rig.coil_field.background_field(&p3);
-        let b = self.desired_field() - background.xy();
+        let b = self.field_at(field_heading) - background.xy();
         let c = DVector::from_vec(vec![force.x, force.y, omega0 * b.x, omega0 * b.y]);
         let mut currents = [0.0; MAX_COILS];
         let allocated = if self.config.constrained_allocation {
@@ -388,6 +455,122 @@ impl ControlLoop {
         (currents, achieved)
     }
 
+    /// [`Self::allocate`], turning the orientation field when `field_heading_turn_deg` allows
+    /// and the coils cannot make `force` at the present heading (see there).
+    fn allocate_turning(
+        &mut self,
+        position: &Vector2<f64>,
+        measured_heading: f64,
+        force: &Vector2<f64>,
+        slew: Option<(&[f64; MAX_COILS], f64)>,
+    ) -> ([f64; MAX_COILS], Vector2<f64>) {
+        let Some(turn_deg) = self.config.field_heading_turn_deg else {
+            return self.allocate(position, measured_heading, force, slew);
+        };
+        let present = self.field_heading_rad;
+        let home = self.config.field_heading_deg.to_radians();
+        let miss = |achieved: &Vector2<f64>| (force - achieved).norm();
+        let made = force.norm() * FORCE_MADE_FRACTION + 1e-12;
+        // The magnet turns with the field: keep the offset the camera measures between them.
+        let offset = wrap_angle(measured_heading - present);
+        let at = |this: &Self, field_heading: f64| {
+            this.allocate_with_field(position, field_heading + offset, field_heading, force, slew)
+        };
+        let stay = at(self, present);
+        let at_home = wrap_angle(present - home).abs() < 1e-9;
+        if at_home && miss(&stay.1) <= made {
+            return stay;
+        }
+        let steps = (turn_deg / FIELD_HEADING_STEP_DEG).floor().max(0.0) as i32;
+        let step = FIELD_HEADING_STEP_DEG.to_radians();
+        let toward_home = |h: f64| wrap_angle(h - home).abs();
+        let mut best = (present, stay, miss(&stay.1));
+        let mut best_home = (miss(&stay.1) <= made).then_some((present, stay));
+        for k in (-steps..=steps).filter(|k| *k != 0) {
+            let heading = wrap_angle(present + f64::from(k) * step);
+            let candidate = at(self, heading);
+            let candidate_miss = miss(&candidate.1);
+            if candidate_miss <= made {
+                // Within reach: the one nearest the configured heading.
+                if best_home.is_none_or(|(h, _)| toward_home(heading) < toward_home(h)) {
+                    best_home = Some((heading, candidate));
+                }
+            } else if candidate_miss < best.2 * (1.0 - TURN_HYSTERESIS_FRACTION) {
+                best = (heading, candidate, candidate_miss);
+            }
+        }
+        let (heading, chosen) = match best_home {
+            Some(found) => found,
+            None => (best.0, best.1),
+        };
+        self.field_heading_rad = heading;
+        chosen
+    }
+
+    /// Remembers that `currents` act from `actuation_ns` on.
+    fn record_issued(&mut self, actuation_ns: u64, currents: [f64; MAX_COILS]) {
+        if self.gain_estimator.is_none() {
+            return;
+        }
+        if self.issued.len() == ISSUED_HISTORY_LEN {
+            self.issued.pop_front();
+        }
+        self.issued.push_back((actuation_ns, currents));
+    }
+
+    /// Feeds the heading of a usable pose to the coil-gain estimate, with the currents that were
+    /// in effect (and had settled) at its capture time; nothing when no command is known to
+    /// have acted then.
+    fn learn_gains(&mut self, pose: &Pose, capture_ns: u64) -> Option<GainUpdate> {
+        let estimator = self.gain_estimator.as_mut()?;
+        let settle_ns = (estimator.config().settle_ms * 1e6) as u64;
+        let (acted_ns, currents) = self
+            .issued
+            .iter()
+            .rev()
+            .find(|(acted_ns, _)| *acted_ns <= capture_ns)?;
+        if acted_ns.saturating_add(settle_ns) > capture_ns {
+            return None;
+        }
+        // The field model speaks effective currents (a saturating coil makes less per ampere).
+        let effective: Vec<f64> = self
+            .coil_ids
+            .iter()
+            .zip(&self.saturation)
+            .map(|(&id, curve)| {
+                let i = currents.get(id).copied().unwrap_or(0.0);
+                curve.as_ref().map_or(i, |c| c.effective(i))
+            })
+            .collect();
+        if effective.iter().all(|i| *i == 0.0) {
+            return None;
+        }
+        let position = Vector2::new(pose.position_m[0], pose.position_m[1]);
+        Some(estimator.observe(
+            &self.rig.coil_field,
+            &position,
+            pose.heading_rad,
+            &effective,
+            capture_ns,
+        ))
+    }
+
+    /// The coil gains the allocation uses (allocation order, see [`Self::coil_ids`]), when
+    /// estimating them online.
+    pub fn coil_gains(&self) -> Option<Vec<f64>> {
+        self.gain_estimator.as_ref().map(|e| e.gains())
+    }
+
+    /// The estimator itself (counts of used and skipped frames, uncertainties), when on.
+    pub fn gain_estimator(&self) -> Option<&CoilGainEstimator> {
+        self.gain_estimator.as_ref()
+    }
+
+    /// The rig coils the allocation drives, in allocation order.
+    pub fn coil_ids(&self) -> &[usize] {
+        &self.coil_ids
+    }
+
     /// A safe-state (zero current) command answering `pose`, e.g. when an input is lost.
     pub fn safe(&mut self, pose: &Pose, why: &'static str) -> Decision {
         self.safe_at(pose, why, pose.stamp.grab_time_ns)
@@ -404,6 +587,7 @@ impl ControlLoop {
         self.last_mode = ControlMode::Safe;
         // Tracking resumes from zero current.
         self.last_tracked = Some((actuation_ns, [0.0; MAX_COILS]));
+        self.record_issued(actuation_ns, [0.0; MAX_COILS]);
         Decision {
             command: CoilCommand {
                 mode: ControlMode::Safe as u32,
@@ -416,6 +600,7 @@ impl ControlLoop {
             pose_age_s: actuation_ns.saturating_sub(pose.stamp.capture_time_ns) as f64 * 1e-9,
             fed_position_m: Vector2::new(pose.position_m[0], pose.position_m[1]),
             predicted_position_m: Vector2::new(pose.position_m[0], pose.position_m[1]),
+            gain_update: None,
         }
     }
 
@@ -444,7 +629,7 @@ impl ControlLoop {
             if hold {
                 let (_, p) = self.last_good.unwrap_or((0, Vector2::zeros()));
                 command.mode = ControlMode::Hold as u32;
-                let heading = self.config.field_heading_deg.to_radians();
+                let heading = self.field_heading_rad;
                 let (currents, achieved) = self.allocate(&p, heading, &Vector2::zeros(), None);
                 command.currents_a = currents;
                 held_force = achieved;
@@ -453,6 +638,7 @@ impl ControlLoop {
             }
             self.last_mode = ControlMode::from_u32(command.mode).unwrap_or(ControlMode::Safe);
             self.last_tracked = Some((actuation_ns, command.currents_a));
+            self.record_issued(actuation_ns, command.currents_a);
             self.controller.reset();
             self.predictor.reset();
             self.predictor
@@ -466,6 +652,7 @@ impl ControlLoop {
                 pose_age_s,
                 fed_position_m: measured,
                 predicted_position_m: measured,
+                gain_update: None,
             };
         }
         let tracking = self.last_mode == ControlMode::Track;
@@ -473,6 +660,7 @@ impl ControlLoop {
             self.predictor.reset();
         }
         self.last_good = Some((t_ns, measured));
+        let gain_update = self.learn_gains(pose, t_ns);
         let flow_valid = flow.map(|f| self.violations.check(services::FLOW, f.validity()));
         let (flow_mps, high_disturbance) = match (flow, flow_valid) {
             (Some(f), Some(Ok(true))) if f.stamp.same_frame(&pose.stamp) => (
@@ -520,18 +708,22 @@ impl ControlLoop {
         let (force, terms) = self.controller.update(&input);
         command.mode = ControlMode::Track as u32;
         command.force_des_n = [force.x, force.y];
-        let field = self.desired_field();
-        command.field_des_t = [field.x, field.y];
         // The field is allocated where the robot will be when the command acts.
         let slew = match (self.config.max_current_slew_a_per_s, &self.last_tracked) {
             (Some(rate), Some((t_prev, previous))) if actuation_ns > *t_prev => {
-                Some((previous, rate * (actuation_ns - t_prev) as f64 * 1e-9))
+                Some((*previous, rate * (actuation_ns - t_prev) as f64 * 1e-9))
             }
             _ => None,
         };
-        let (currents, achieved) = self.allocate(&position_m, pose.heading_rad, &force, slew);
+        let slew = slew.as_ref().map(|(previous, step)| (previous, *step));
+        let (currents, achieved) =
+            self.allocate_turning(&position_m, pose.heading_rad, &force, slew);
+        let field = self.desired_field();
+        command.field_des_t = [field.x, field.y];
         command.currents_a = currents;
         self.last_tracked = Some((actuation_ns, currents));
+        self.record_issued(actuation_ns, currents);
+        self.controller.applied(achieved);
         self.predictor.commanded(actuation_ns, achieved, flow_mps);
         self.last_mode = ControlMode::Track;
         Decision {
@@ -543,6 +735,7 @@ impl ControlLoop {
             pose_age_s,
             fed_position_m: position_m,
             predicted_position_m: measured + predicted.motion_ahead_m,
+            gain_update,
         }
     }
 }
@@ -603,6 +796,12 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
     }
     if let Some(limits) = &config.limits {
         limits.validate().config_context(field("limits"))?;
+    }
+    if let Some((name, why)) = config.gain_estimation.invalid_field() {
+        return Err(ConfigError::new(format!(
+            "scenario {}: [control.gain_estimation] {name} {why}",
+            scenario.path.display()
+        )));
     }
     if let Some((name, why)) = config.latency.invalid_field() {
         return Err(ConfigError::new(format!(
@@ -804,9 +1003,39 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow
         commands.send(decision.command)?;
         recording::set_time(&rt.rec, pose.stamp.capture_time_ns, pose.stamp.seq);
         log_decision(&rt.rec, &pose, &decision);
+        log_coil_gains(&rt.rec, &control, decision.gain_update);
         anyhow::Ok(())
     })?;
     Ok(())
+}
+
+/// The online coil-gain estimate (per rig coil name) and what the last frame did to it.
+fn log_coil_gains(rec: &rerun::RecordingStream, control: &ControlLoop, update: Option<GainUpdate>) {
+    let (Some(estimator), Some(update)) = (control.gain_estimator(), update) else {
+        return;
+    };
+    if update != GainUpdate::Used {
+        let why = match update {
+            GainUpdate::WeakField => "weak field",
+            _ => "innovation gated",
+        };
+        let _ = rec.log(
+            "control/coil_gain/skipped",
+            &rerun::TextLog::new(format!(
+                "heading not used ({why}); used {}, gated {}, weak {}",
+                estimator.used, estimator.gated, estimator.weak
+            )),
+        );
+        return;
+    }
+    for (gain, &id) in estimator.gains().iter().zip(control.coil_ids()) {
+        let name = control
+            .rig
+            .coils
+            .get(id)
+            .map_or_else(|| id.to_string(), |c| c.name.clone());
+        recording::scalar(rec, &format!("control/coil_gain/{name}"), *gain);
+    }
 }
 
 fn log_planned_path(rec: &rerun::RecordingStream, reference: &Reference) {
@@ -822,6 +1051,7 @@ fn log_planned_path(rec: &rerun::RecordingStream, reference: &Reference) {
 mod tests {
     use super::*;
     use shm_schemas::Flag;
+    use std::f64::consts::FRAC_PI_4;
 
     fn control_loop() -> ControlLoop {
         let reference = Reference::new(&[[-0.018, 0.012], [-0.012, 0.008]], 1e-3, 0.0).unwrap();
@@ -962,6 +1192,17 @@ mod tests {
         );
 
         let error = check_config(&scenario_with(
+            "gains",
+            "[control.gain_estimation]\nenabled = true\nprior_std = -0.1",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(
+            error.contains("[control.gain_estimation] prior_std"),
+            "{error}"
+        );
+
+        let error = check_config(&scenario_with(
             "limits",
             "[control.limits]\nmax_current_a = 0.0",
         ))
@@ -1072,6 +1313,121 @@ mod tests {
         }
         let strongest = |v: &[f64]| v.iter().map(|i| i.abs()).fold(0.0, f64::max);
         assert!(strongest(&currents) > strongest(&linear_currents) * 1.01);
+    }
+
+    /// The loop of the scheduled SMC-DOB on the paper's rig (all 12 coils, constrained
+    /// allocation) with `config` changes.
+    fn beyond_loop(change: impl FnOnce(&mut ControlConfig)) -> ControlLoop {
+        let reference = Reference::new(&[[-0.018, 0.012], [-0.012, 0.008]], 1e-3, 0.0).unwrap();
+        let rig = Arc::new(Rig::load_paper().unwrap());
+        let mut config = ControlConfig {
+            controller: ControllerKind::SmcDobAuto,
+            constrained_allocation: true,
+            use_all_coils: true,
+            ..ControlConfig::default()
+        };
+        change(&mut config);
+        ControlLoop::new(config, reference, 0.02, 0, rig)
+    }
+
+    #[test]
+    fn the_field_turns_for_a_force_out_of_reach_and_back_once_it_is_within_reach() {
+        let position = Vector2::new(0.012, 0.034);
+        // Near the outlet the coils make ≈ 0.09 mN toward −y with the magnet at 45°, ≈ 0.35 mN
+        // with it at 135°.
+        let force = Vector2::new(0.0, -3e-4);
+        let fixed = beyond_loop(|_| {});
+        let (_, fixed_achieved) = fixed.allocate(&position, FRAC_PI_4, &force, None);
+        let mut turning = beyond_loop(|c| c.field_heading_turn_deg = Some(45.0));
+        let mut heading = FRAC_PI_4;
+        let mut achieved = Vector2::zeros();
+        for _ in 0..4 {
+            // The magnet follows the field.
+            (_, achieved) = turning.allocate_turning(&position, heading, &force, None);
+            let turned = wrap_angle(turning.field_heading_rad - heading).abs();
+            assert!(turned <= 45f64.to_radians() + 1e-9, "turned {turned} rad");
+            heading = turning.field_heading_rad;
+        }
+        assert!(
+            -achieved.y > 2.5 * -fixed_achieved.y,
+            "turning {achieved:?}, fixed {fixed_achieved:?}"
+        );
+        // A force the coils make at 45° brings the field back there, step by step.
+        let small = Vector2::new(0.0, -2e-5);
+        for _ in 0..4 {
+            let (_, made) = turning.allocate_turning(&position, heading, &small, None);
+            assert!(
+                (made - small).norm() <= 0.02 * small.norm() + 1e-12,
+                "{made:?}"
+            );
+            heading = turning.field_heading_rad;
+        }
+        assert!(wrap_angle(heading - FRAC_PI_4).abs() < 1e-9, "{heading}");
+    }
+
+    #[test]
+    fn headings_teach_the_loop_the_coil_gains_and_the_field_then_holds_its_heading() {
+        let truth = [
+            1.05, 0.92, 1.10, 0.97, 0.88, 1.04, 1.12, 0.95, 1.01, 0.90, 1.07, 0.99,
+        ];
+        let mut c = beyond_loop(|c| {
+            c.gain_estimation.enabled = true;
+            c.gain_estimation.heading_noise_deg = 0.5;
+        });
+        let rig = c.rig.clone();
+        let true_field = |p: &Vector2<f64>, currents: &[f64; MAX_COILS]| {
+            let p3 = Vector3::new(p.x, p.y, 0.0);
+            (0..12).fold(Vector2::zeros(), |b, k| {
+                b + rig.coil_field.field_per_amp(k, &p3).xy() * (currents[k] * truth[k])
+            })
+        };
+        let mut rng = 7u64;
+        let mut uniform = || {
+            rng = rng
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (rng >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        for k in 0..800u64 {
+            let t_ns = k * 100_000_000;
+            let mut currents = [0.0; MAX_COILS];
+            for current in currents.iter_mut().take(12) {
+                *current = uniform() * 3.0;
+            }
+            c.record_issued(t_ns, currents);
+            let p = Vector2::new(uniform() * 0.02, uniform() * 0.02);
+            let b = true_field(&p, &currents);
+            let mut frame = pose(k, (t_ns + 50_000_000) as f64 * 1e-9, p.x, p.y);
+            frame.heading_rad = b.y.atan2(b.x) + uniform() * 0.5f64.to_radians();
+            c.learn_gains(&frame, frame.stamp.capture_time_ns);
+        }
+        // Headings tell the gains relative to each other (mean 1, see coil_gains).
+        let mean = truth.iter().sum::<f64>() / 12.0;
+        let learned = c.coil_gains().unwrap();
+        for (k, (g, t)) in learned.iter().zip(truth).enumerate() {
+            assert!(
+                (g - t / mean).abs() < 0.01,
+                "coil {k}: {g:.4} vs {:.4}",
+                t / mean
+            );
+        }
+        // Driving hard, the true field now points where the loop asks.
+        let position = Vector2::new(0.012, 0.02);
+        let force = Vector2::new(1e-4, -2e-4);
+        let (currents, _) = c.allocate(&position, FRAC_PI_4, &force, None);
+        let strongest = currents.iter().map(|i| i.abs()).fold(0.0, f64::max);
+        assert!(strongest > 3.0, "{currents:?}");
+        let b = true_field(&position, &currents);
+        let off = wrap_angle(b.y.atan2(b.x) - FRAC_PI_4).to_degrees();
+        assert!(off.abs() < 3.0, "field {off:.1}° off its heading");
+        let unaware = beyond_loop(|_| {});
+        let (currents, _) = unaware.allocate(&position, FRAC_PI_4, &force, None);
+        let b = true_field(&position, &currents);
+        let unaware_off = wrap_angle(b.y.atan2(b.x) - FRAC_PI_4).to_degrees();
+        assert!(
+            unaware_off.abs() > 3.0 * off.abs(),
+            "{unaware_off:.1}° vs {off:.1}°"
+        );
     }
 
     #[test]

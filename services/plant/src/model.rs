@@ -19,7 +19,7 @@
 
 use fieldmaps::coils::CoilField;
 use fieldmaps::flowmap::FlowMap;
-use fieldmaps::physics;
+use fieldmaps::physics::{self, wrap_angle};
 use fieldmaps::rig::{FluidParams, RobotParams, SaturationCurve};
 use fieldmaps::rigfile::{RigPhantom, MAX_RIG_COILS};
 use fieldmaps::walls::WallField;
@@ -426,17 +426,4 @@ impl PlantModel {
         }
         contact
     }
-}
-
-/// Wraps to [−π, π); angles already in range are returned unchanged (bit for bit).
-pub fn wrap_angle(a: f64) -> f64 {
-    if (-std::f64::consts::PI..std::f64::consts::PI).contains(&a) {
-        return a;
-    }
-    let two_pi = std::f64::consts::TAU;
-    let mut x = (a + std::f64::consts::PI) % two_pi;
-    if x < 0.0 {
-        x += two_pi;
-    }
-    x - std::f64::consts::PI
 }

@@ -251,6 +251,17 @@ pub fn cell_scenario(base: &Scenario, cell: &Cell) -> anyhow::Result<String> {
         "smc-dob-auto" | "smc-auto" => {
             control.insert("constrained_allocation".into(), true.into());
             control.insert("use_all_coils".into(), true.into());
+            // Beyond the paper too: the orientation field turns for force at the coil limits,
+            // and the coil gains are corrected online from the heading.
+            control
+                .entry("field_heading_turn_deg")
+                .or_insert_with(|| 45.0.into());
+            let mut estimation = control
+                .get("gain_estimation")
+                .and_then(|v| v.as_table().cloned())
+                .unwrap_or_default();
+            estimation.entry("enabled").or_insert_with(|| true.into());
+            control.insert("gain_estimation".into(), estimation.into());
         }
         // The paper ran its SMC with a second, fixed gain set whenever the fluid moved.
         "smc-dob" | "smc" if cell.flow != FlowSetting::Static => {
@@ -286,6 +297,12 @@ pub struct TraceRow {
 /// Localization noise of the fast mode (per axis), from vision-eval's centroid error.
 pub const FAST_POSE_NOISE_M: f64 = 2.0e-5;
 
+/// Heading noise of the fast mode (rad, ≈ 0.3°): vision's heading is the tip–tail axis, its
+/// keypoints ≈ 0.02 mm off each (vision-eval, p50–p95 0.011–0.027 mm) about 6 mm apart, so
+/// √2 · 0.02 / 6 ≈ 0.005 rad. Drawn on a stream of its own, so the position noise of a seed
+/// is what it was before headings were noisy.
+pub const FAST_HEADING_NOISE_RAD: f64 = 5.0e-3;
+
 /// Runs a scenario in one process with the services' own libraries.
 pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
     let plant_config: PlantConfig = scenario.section("plant")?;
@@ -297,6 +314,8 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
     let mut bus = CoilBus::new(coilbus.limits, deadlines::COMMAND, coilbus.coil_count);
     let mut rng = ChaCha8Rng::seed_from_u64(scenario.run.seed ^ 0x7669_7369_6f6e);
     let noise = Normal::new(0.0, FAST_POSE_NOISE_M)?;
+    let mut heading_rng = ChaCha8Rng::seed_from_u64(scenario.run.seed ^ 0x6865_6164);
+    let heading_noise = Normal::new(0.0, FAST_HEADING_NOISE_RAD)?;
     let dt = scenario.frame_period_s();
     let frames = (scenario.run.duration_s / dt).ceil() as u64;
     let mut applied = [0.0; MAX_COILS];
@@ -331,7 +350,7 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
             stamp: FrameStamp::new(seq, 0, secs_to_ns(seen_time_s))
                 .grabbed_at(secs_to_ns(state.time_s)),
             position_m: [measured.x, measured.y],
-            heading_rad: seen_heading,
+            heading_rad: seen_heading + heading_noise.sample(&mut heading_rng),
             confidence: 1.0,
             valid: Flag::TRUE,
             source: PoseSource::Unet as u32,

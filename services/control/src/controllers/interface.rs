@@ -37,6 +37,9 @@ pub trait Controller: Send {
     fn id(&self) -> u32;
     /// Desired planar force (N) for this step.
     fn update(&mut self, input: &ControlInput) -> (Vector2<f64>, ControlTerms);
+    /// The force the allocation could make for the last `update` (less than asked when the
+    /// coils saturate). Controllers that model their own input take it from here.
+    fn applied(&mut self, _achieved_n: Vector2<f64>) {}
     /// Forget integrators and filters (after a hold or a restart of the loop).
     fn reset(&mut self);
 }

@@ -27,7 +27,10 @@ pub struct SmcGains {
     pub use_dob: bool,
     /// Schedule K4, η and φ automatically from the flow map's local speed (static gains in
     /// still fluid, the paper's flow gains at `schedule_ref_speed_mps`) and widen η and φ in
-    /// the high-disturbance zone as the paper did by hand (η x1.75, φ x1.5).
+    /// the high-disturbance zone as the paper did by hand (η x1.75, φ x1.5). The observer then
+    /// also takes the force the allocation achieved as the loop's input instead of the force
+    /// asked for: at the coil limits the difference is not a disturbance, and counting it as one
+    /// winds d̂ up until the robot, once free, is thrown across the canal.
     pub auto_schedule: bool,
     pub flow_k4_n: f64,
     pub flow_eta_s: f64,
@@ -192,6 +195,11 @@ impl Controller for SmcDob {
                 disturbance_estimate_n: d_hat,
             },
         )
+    }
+    fn applied(&mut self, achieved_n: Vector2<f64>) {
+        if self.gains.auto_schedule {
+            self.previous_force = achieved_n;
+        }
     }
     fn reset(&mut self) {
         self.initialized = false;
