@@ -58,9 +58,16 @@ pub struct GainEstimationConfig {
     /// Frames whose modelled field is weaker than this are skipped (mT): the heading says
     /// little about the field's direction there.
     pub min_field_mt: f64,
-    /// A command must have acted this long before a frame's capture for the frame to measure it
-    /// (ms): the coil currents' L/R rise.
+    /// The field must have held its direction (within `heading_noise_deg`) for this long
+    /// before a frame's capture for the frame to measure it (ms): the coil currents' L/R rise.
+    /// The loop also waits at least three of the capsule's rotation time constants (rotational
+    /// drag / (|m|·|B|): 11 ms at 20 cP and 1 mT), since the capsule trails a turning field.
     pub settle_ms: f64,
+    /// At most one frame per this interval is learned from (ms). Frames closer together carry
+    /// the same model error (map interpolation, a wall, the capsule's lag), which the filter
+    /// would take for independent evidence: at 100 Hz, learning from every frame drove the
+    /// gains to their bounds within 40 s in still fluid.
+    pub min_interval_ms: f64,
     /// Estimated gains are kept within [1 − max_gain_error, 1 + max_gain_error].
     pub max_gain_error: f64,
 }
@@ -76,6 +83,7 @@ impl Default for GainEstimationConfig {
             gate_sigma: 4.0,
             min_field_mt: 0.3,
             settle_ms: 5.0,
+            min_interval_ms: 100.0,
             max_gain_error: 0.5,
         }
     }
@@ -94,6 +102,7 @@ impl GainEstimationConfig {
             ("gain_drift_per_sqrt_s", self.gain_drift_per_sqrt_s),
             ("min_field_mt", self.min_field_mt),
             ("settle_ms", self.settle_ms),
+            ("min_interval_ms", self.min_interval_ms),
         ];
         if let Some((name, v)) = positive.iter().find(|(_, v)| !(v.is_finite() && *v > 0.0)) {
             return Some((name, format!("must be finite and > 0, got {v}")));
@@ -126,6 +135,8 @@ pub enum GainUpdate {
     WeakField,
     /// The innovation failed the gate (wall contact, misread heading, a transient).
     Gated,
+    /// Within `min_interval_ms` of the last frame learned from.
+    TooSoon,
 }
 
 /// Estimates of every allocated coil's gain and of a background field, from headings.
@@ -136,7 +147,7 @@ pub struct CoilGainEstimator {
     /// δ_1..δ_n, then ΔB_bg x and y (T).
     state: DVector<f64>,
     covariance: DMatrix<f64>,
-    /// Capture time of the last measurement (ns), for the random walk.
+    /// Capture time of the last frame learned from (ns), for the random walk and the interval.
     last_ns: Option<u64>,
     pub used: u64,
     pub gated: u64,
@@ -232,6 +243,35 @@ impl CoilGainEstimator {
             .collect()
     }
 
+    /// The in-plane direction (rad) of the field that `currents_a` (allocation order) make at
+    /// `position_m` as the estimate believes it, None where it is too weak to have one.
+    pub fn believed_field_heading<F: CoilField + ?Sized>(
+        &self,
+        coils: &F,
+        position_m: &Vector2<f64>,
+        currents_a: &[f64],
+    ) -> Option<f64> {
+        let b = self.believed_field(coils, position_m, currents_a);
+        (b.norm() >= self.config.min_field_mt * 1e-3 && b.norm().is_finite())
+            .then(|| b.y.atan2(b.x))
+    }
+
+    fn believed_field<F: CoilField + ?Sized>(
+        &self,
+        coils: &F,
+        position_m: &Vector2<f64>,
+        currents_a: &[f64],
+    ) -> Vector2<f64> {
+        let p3 = Vector3::new(position_m.x, position_m.y, 0.0);
+        let gains = self.gains();
+        let mut believed = coils.background_field(&p3).xy() + self.background_t();
+        for (k, &id) in self.coil_ids.iter().enumerate() {
+            let current = currents_a.get(k).copied().unwrap_or(0.0);
+            believed += coils.field_per_amp(id, &p3).xy() * (current * gains[k]);
+        }
+        believed
+    }
+
     /// Learns from one frame: the capsule at `position_m` (m, on the control plane) pointed
     /// along `heading_rad` at `capture_ns`, with `currents_a[k]` in allocated coil k (the
     /// currents in effect then), on the model `coils`.
@@ -246,6 +286,10 @@ impl CoilGainEstimator {
         let n = self.coil_ids.len();
         if let Some(last) = self.last_ns {
             let dt = capture_ns.saturating_sub(last) as f64 * 1e-9;
+            // Half a frame of slack, so a 10 Hz loop learns from every frame.
+            if dt < self.config.min_interval_ms * 1e-3 * 0.95 {
+                return GainUpdate::TooSoon;
+            }
             let walk = self.config.gain_drift_per_sqrt_s.powi(2) * dt;
             for k in 0..n {
                 self.covariance[(k, k)] += walk;
@@ -267,12 +311,7 @@ impl CoilGainEstimator {
         regressor[n] = -u.y;
         regressor[n + 1] = u.x;
         // The field as the estimate believes it, for the weak-field test and the noise scale.
-        let gains = self.gains();
-        let mut believed = coils.background_field(&p3).xy() + self.background_t();
-        for (k, &id) in self.coil_ids.iter().enumerate() {
-            let current = currents_a.get(k).copied().unwrap_or(0.0);
-            believed += coils.field_per_amp(id, &p3).xy() * (current * gains[k]);
-        }
+        let believed = self.believed_field(coils, position_m, currents_a);
         if believed.norm() < self.config.min_field_mt * 1e-3 || !believed.norm().is_finite() {
             self.weak += 1;
             return GainUpdate::WeakField;
@@ -382,6 +421,9 @@ mod tests {
         for frame in 0..50 {
             estimator.observe(&coils, &p, right, &currents, frame * 100_000_000);
         }
+        // A frame 10 ms after the last one learned from adds nothing new (a 100 Hz loop).
+        let soon = estimator.observe(&coils, &p, right, &currents, 49 * 100_000_000 + 10_000_000);
+        assert_eq!(soon, GainUpdate::TooSoon);
         let before = estimator.gains();
         // Wedged against a wall at 60° off the field.
         let update = estimator.observe(&coils, &p, right + 1.0, &currents, 50 * 100_000_000);

@@ -224,6 +224,9 @@ pub struct ControlLoop {
     /// Heading of the orientation field commanded last (rad): `field_heading_deg` unless
     /// `field_heading_turn_deg` lets it turn.
     field_heading_rad: f64,
+    /// How long the field must have held its direction before a frame's heading measures it
+    /// (ns): the gain estimate's `settle_ms`, and at least three rotation time constants.
+    alignment_window_ns: u64,
 }
 
 /// Commands remembered for matching frames to the currents in effect at their capture.
@@ -267,6 +270,11 @@ impl ControlLoop {
         };
         let predictor = StatePredictor::new(config.latency.clone(), moving);
         let config_heading = config.field_heading_deg.to_radians();
+        let rotation_time_constant_s =
+            physics::rotational_drag(viscosity_pa_s, robot.length_m, robot.diameter_m / 2.0)
+                / (robot.magnet_moment_am2 * config.field_magnitude_mt * 1e-3).max(1e-12);
+        let alignment_window_s =
+            (config.gain_estimation.settle_ms * 1e-3).max(3.0 * rotation_time_constant_s);
         let gain_estimator = config
             .gain_estimation
             .enabled
@@ -292,6 +300,7 @@ impl ControlLoop {
             gain_estimator,
             issued: VecDeque::with_capacity(ISSUED_HISTORY_LEN),
             field_heading_rad: config_heading,
+            alignment_window_ns: (alignment_window_s.min(10.0) * 1e9) as u64,
         }
     }
 
@@ -522,35 +531,66 @@ impl ControlLoop {
     /// in effect (and had settled) at its capture time; nothing when no command is known to
     /// have acted then.
     fn learn_gains(&mut self, pose: &Pose, capture_ns: u64) -> Option<GainUpdate> {
-        let estimator = self.gain_estimator.as_mut()?;
-        let settle_ns = (estimator.config().settle_ms * 1e6) as u64;
-        let (acted_ns, currents) = self
+        let estimator = self.gain_estimator.as_ref()?;
+        // The field model speaks effective currents (a saturating coil makes less per ampere).
+        let effective = |currents: &[f64; MAX_COILS]| -> Vec<f64> {
+            self.coil_ids
+                .iter()
+                .zip(&self.saturation)
+                .map(|(&id, curve)| {
+                    let i = currents.get(id).copied().unwrap_or(0.0);
+                    curve.as_ref().map_or(i, |c| c.effective(i))
+                })
+                .collect()
+        };
+        let position = Vector2::new(pose.position_m[0], pose.position_m[1]);
+        // The commands that acted over the window before the capture, newest first, down to
+        // the one in effect when the window opened: the field must have held its direction
+        // through all of them, or the capsule is still turning.
+        let window_start = capture_ns.saturating_sub(self.alignment_window_ns);
+        let mut in_window = self
             .issued
             .iter()
             .rev()
-            .find(|(acted_ns, _)| *acted_ns <= capture_ns)?;
-        if acted_ns.saturating_add(settle_ns) > capture_ns {
+            .skip_while(|(acted_ns, _)| *acted_ns > capture_ns);
+        let (_, in_effect) = in_window.next()?;
+        let in_effect = effective(in_effect);
+        if in_effect.iter().all(|i| *i == 0.0) {
             return None;
         }
-        // The field model speaks effective currents (a saturating coil makes less per ampere).
-        let effective: Vec<f64> = self
-            .coil_ids
+        let heading =
+            estimator.believed_field_heading(&self.rig.coil_field, &position, &in_effect)?;
+        let mut opened = self
+            .issued
             .iter()
-            .zip(&self.saturation)
-            .map(|(&id, curve)| {
-                let i = currents.get(id).copied().unwrap_or(0.0);
-                curve.as_ref().map_or(i, |c| c.effective(i))
-            })
-            .collect();
-        if effective.iter().all(|i| *i == 0.0) {
+            .rev()
+            .find(|(acted_ns, _)| *acted_ns <= capture_ns)
+            .is_some_and(|(acted_ns, _)| *acted_ns <= window_start);
+        let tolerance = estimator.config().heading_noise_deg.to_radians();
+        for (acted_ns, earlier) in in_window {
+            if opened {
+                break;
+            }
+            let earlier = estimator.believed_field_heading(
+                &self.rig.coil_field,
+                &position,
+                &effective(earlier),
+            )?;
+            if wrap_angle(earlier - heading).abs() > tolerance {
+                return None;
+            }
+            opened = *acted_ns <= window_start;
+        }
+        if !opened {
+            // The history does not reach back over the whole window (just started).
             return None;
         }
-        let position = Vector2::new(pose.position_m[0], pose.position_m[1]);
+        let estimator = self.gain_estimator.as_mut()?;
         Some(estimator.observe(
             &self.rig.coil_field,
             &position,
             pose.heading_rad,
-            &effective,
+            &in_effect,
             capture_ns,
         ))
     }
@@ -1017,7 +1057,8 @@ fn log_coil_gains(rec: &rerun::RecordingStream, control: &ControlLoop, update: O
     if update != GainUpdate::Used {
         let why = match update {
             GainUpdate::WeakField => "weak field",
-            _ => "innovation gated",
+            GainUpdate::Gated => "innovation gated",
+            GainUpdate::Used | GainUpdate::TooSoon => return,
         };
         let _ = rec.log(
             "control/coil_gain/skipped",

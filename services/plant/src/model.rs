@@ -153,11 +153,7 @@ impl PlantModel {
         let area = 0.5 * (robot.diameter_m * robot.length_m)
             + 0.5 * std::f64::consts::PI * radius * radius;
         let quadratic = 0.5 * fluid.density_kg_m3 * config.form_drag_coefficient * area;
-        // Slender-body rotational drag about a transverse axis: π μ L³ / (3 (ln(L/r) − 0.8)),
-        // floored to stay finite for stubby bodies.
-        let log_term = ((robot.length_m / radius).ln() - 0.8).max(0.1);
-        let rotational =
-            std::f64::consts::PI * fluid.viscosity_pa_s * robot.length_m.powi(3) / (3.0 * log_term);
+        let rotational = physics::rotational_drag(fluid.viscosity_pa_s, robot.length_m, radius);
         // Same displaced volume as the rig parameters' added mass (cylinder approximation).
         let apparent_weight =
             (robot.mass_kg - fluid.density_kg_m3 * robot.volume_m3()) * GRAVITY_MPS2;
