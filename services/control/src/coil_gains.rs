@@ -335,9 +335,20 @@ impl CoilGainEstimator {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use nalgebra::Matrix3;
+
+    /// A seeded source of numbers uniform in [−1, 1) (a 64-bit LCG: enough for test data).
+    pub(crate) fn uniform_source(seed: u64) -> impl FnMut() -> f64 {
+        let mut state = seed;
+        move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        }
+    }
 
     /// Four coils around the origin, each a dipole-like field with a gradient, enough to test
     /// the estimator without a rig file.
@@ -377,13 +388,7 @@ mod tests {
             },
             vec![0, 1, 2, 3],
         );
-        let mut rng = 12345u64;
-        let mut uniform = || {
-            rng = rng
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (rng >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-        };
+        let mut uniform = uniform_source(12345);
         for frame in 0..600u64 {
             let p = Vector2::new(uniform() * 0.02, uniform() * 0.02);
             let currents: Vec<f64> = (0..4).map(|_| uniform() * 3.0).collect();

@@ -1422,13 +1422,7 @@ mod tests {
                 b + rig.coil_field.field_per_amp(k, &p3).xy() * (currents[k] * truth[k])
             })
         };
-        let mut rng = 7u64;
-        let mut uniform = || {
-            rng = rng
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (rng >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-        };
+        let mut uniform = crate::coil_gains::tests::uniform_source(7);
         for k in 0..800u64 {
             let t_ns = k * 100_000_000;
             let mut currents = [0.0; MAX_COILS];
