@@ -553,19 +553,14 @@ impl ControlLoop {
             .iter()
             .rev()
             .skip_while(|(acted_ns, _)| *acted_ns > capture_ns);
-        let (_, in_effect) = in_window.next()?;
+        let (acted_ns, in_effect) = in_window.next()?;
+        let mut opened = *acted_ns <= window_start;
         let in_effect = effective(in_effect);
         if in_effect.iter().all(|i| *i == 0.0) {
             return None;
         }
         let heading =
             estimator.believed_field_heading(&self.rig.coil_field, &position, &in_effect)?;
-        let mut opened = self
-            .issued
-            .iter()
-            .rev()
-            .find(|(acted_ns, _)| *acted_ns <= capture_ns)
-            .is_some_and(|(acted_ns, _)| *acted_ns <= window_start);
         let tolerance = estimator.config().heading_noise_deg.to_radians();
         for (acted_ns, earlier) in in_window {
             if opened {
