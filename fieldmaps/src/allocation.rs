@@ -427,6 +427,42 @@ pub fn allocate_constrained_rated(
     ratings: &CoilRatings,
     settings: &ConstrainedSettings,
 ) -> Result<ConstrainedAllocation, AllocationError> {
+    allocate_constrained_core(a, c, ratings, settings, None)
+}
+
+/// [`allocate_constrained_rated`] with a slew limit: every coil's current stays within
+/// `max_step_a` of `previous_a` (in the same column order), on top of its limits. The whole
+/// coil set shares the change: when one coil cannot follow, the others (the allocation has
+/// more coils than rows) make up what they can of the command, where uniformly scaling the
+/// step would hold every coil back. The previous currents are always feasible, so is this.
+pub fn allocate_constrained_slewed(
+    a: &DMatrix<f64>,
+    c: &DVector<f64>,
+    ratings: &CoilRatings,
+    settings: &ConstrainedSettings,
+    previous_a: &DVector<f64>,
+    max_step_a: f64,
+) -> Result<ConstrainedAllocation, AllocationError> {
+    if previous_a.len() != a.ncols() {
+        return Err(AllocationError::BadSettings(
+            "previous currents must have one entry per coil",
+        ));
+    }
+    if !(max_step_a.is_finite() && max_step_a >= 0.0) || previous_a.iter().any(|i| !i.is_finite()) {
+        return Err(AllocationError::BadSettings(
+            "the slew step and the previous currents must be finite (step >= 0)",
+        ));
+    }
+    allocate_constrained_core(a, c, ratings, settings, Some((previous_a, max_step_a)))
+}
+
+fn allocate_constrained_core(
+    a: &DMatrix<f64>,
+    c: &DVector<f64>,
+    ratings: &CoilRatings,
+    settings: &ConstrainedSettings,
+    slew: Option<(&DVector<f64>, f64)>,
+) -> Result<ConstrainedAllocation, AllocationError> {
     check_command(a, c)?;
     ratings.valid()?;
     if ratings.len() != a.ncols() {
@@ -494,7 +530,19 @@ pub fn allocate_constrained_rated(
             (&ah * x - &ch).norm() / cn
         }
     };
-    if ch.norm() == 0.0 {
+    // Each coil's window in x: its limits, narrowed to the slew step around the previous
+    // currents (clamped into the limits, so the window is never empty).
+    let (lower, upper): (Vec<f64>, Vec<f64>) = (0..n)
+        .map(|k| match slew {
+            None => (-1.0, 1.0),
+            Some((previous, step)) => (
+                ((previous[k] - step) / i_max[k]).clamp(-1.0, 1.0),
+                ((previous[k] + step) / i_max[k]).clamp(-1.0, 1.0),
+            ),
+        })
+        .unzip();
+    let zero_in_window = lower.iter().all(|&l| l <= 0.0) && upper.iter().all(|&u| u >= 0.0);
+    if ch.norm() == 0.0 && zero_in_window {
         return Ok(ConstrainedAllocation {
             currents_a: DVector::zeros(n),
             status: AllocationStatus::Exact,
@@ -505,6 +553,10 @@ pub fn allocate_constrained_rated(
 
     let mut iterations = 0;
     let finish = |mut x: DVector<f64>, status: AllocationStatus, iterations: u32| {
+        // The solver's tolerance must not leak past the window either.
+        for (k, v) in x.iter_mut().enumerate() {
+            *v = v.clamp(lower[k], upper[k]);
+        }
         let mut currents_a = x.component_mul(i_max);
         clamp_to_ratings(&mut currents_a, ratings);
         x = currents_a.component_div(i_max);
@@ -529,6 +581,7 @@ pub fn allocate_constrained_rated(
         &p1,
         &q1,
         Some((&ah, &ch)),
+        (&lower, &upper),
         &power_weights,
         settings.max_iter,
     ) {
@@ -551,16 +604,32 @@ pub fn allocate_constrained_rated(
     // Stage 2: min ‖Â x − Ĉ‖² + ε‖x‖² (½xᵀPx + qᵀx with P = 2(ÂᵀÂ + εI), q = −2ÂᵀĈ).
     let p2 = dense_csc_upper(&((ah.tr_mul(&ah) + DMatrix::identity(n, n) * eps) * 2.0));
     let q2: Vec<f64> = (ah.tr_mul(&ch) * -2.0).iter().copied().collect();
-    if let Some(sol) = solve_limited_socp(&p2, &q2, None, &power_weights, settings.max_iter) {
+    if let Some(sol) = solve_limited_socp(
+        &p2,
+        &q2,
+        None,
+        (&lower, &upper),
+        &power_weights,
+        settings.max_iter,
+    ) {
         iterations += sol.iterations;
         if let Some(x) = sol.x {
             return Ok(finish(x, AllocationStatus::BestEffort, iterations));
         }
     }
 
-    // Solver failure: the uniform-scaling fallback, still within the limits.
+    // Solver failure: the uniform-scaling fallback, still within the limits (and with a slew
+    // limit, the previous currents moved toward it by one factor, so no coil steps further).
     let fb = allocate_limited_rated(a, c, ratings)?;
-    let x = fb.currents_a.component_div(i_max);
+    let mut fallback = fb.currents_a;
+    if let Some((previous, step)) = slew {
+        let change = &fallback - previous;
+        let largest = change.amax();
+        if largest > step {
+            fallback = previous + change * (step / largest);
+        }
+    }
+    let x = fallback.component_div(i_max);
     Ok(finish(x, AllocationStatus::Fallback, iterations))
 }
 
@@ -588,11 +657,13 @@ fn dense_csc_upper(m: &DMatrix<f64>) -> clarabel::algebra::CscMatrix<f64> {
     clarabel::algebra::CscMatrix::new(n, n, colptr, rowval, nzval)
 }
 
-/// Solve min ½xᵀPx + qᵀx s.t. [Â x = Ĉ], |x_k| ≤ 1, ‖d ⊙ x‖₂ ≤ 1 with Clarabel.
+/// Solve min ½xᵀPx + qᵀx s.t. [Â x = Ĉ], lower_k ≤ x_k ≤ upper_k, ‖d ⊙ x‖₂ ≤ 1 with
+/// Clarabel.
 fn solve_limited_socp(
     p: &clarabel::algebra::CscMatrix<f64>,
     q: &[f64],
     equality: Option<(&DMatrix<f64>, &DVector<f64>)>,
+    (lower, upper): (&[f64], &[f64]),
     d: &DVector<f64>,
     max_iter: u32,
 ) -> Option<SocpSolution> {
@@ -603,8 +674,8 @@ fn solve_limited_socp(
     let m_eq = equality.map_or(0, |(a, _)| a.nrows());
     // Constraint rows (Clarabel form G x + s = h, s ∈ K):
     //   [Â]  x + s = Ĉ         s ∈ {0}^m      (stage 1 only)
-    //   [ I] x + s = 1         s ≥ 0          (x ≤ 1)
-    //   [−I] x + s = 1         s ≥ 0          (−x ≤ 1)
+    //   [ I] x + s = upper     s ≥ 0          (x ≤ upper)
+    //   [−I] x + s = −lower    s ≥ 0          (−x ≤ −lower)
     //   [0ᵀ; −diag d] x + s = [1; 0]   s ∈ SOC    (‖d ⊙ x‖ ≤ 1)
     let rows = m_eq + 2 * n + 1 + n;
     let mut colptr = Vec::with_capacity(n + 1);
@@ -631,7 +702,8 @@ fn solve_limited_socp(
     if let Some((_, c)) = equality {
         h.extend(c.iter().copied());
     }
-    h.extend(std::iter::repeat_n(1.0, 2 * n));
+    h.extend(upper.iter().copied());
+    h.extend(lower.iter().map(|l| -l));
     h.push(1.0);
     h.extend(std::iter::repeat_n(0.0, n));
     let mut cones = Vec::with_capacity(3);
@@ -1003,6 +1075,73 @@ mod tests {
         );
         assert!(counts[0] > 50 && counts[1] > 50, "{counts:?}");
         assert_eq!(counts[2], 0);
+    }
+
+    #[test]
+    fn slewed_allocation_stays_in_reach_and_beats_scaling_the_step() {
+        // A force that reverses between two commands: every coil within the step of its
+        // previous current, and sharing the step over the coils meets more of the new command
+        // than moving the whole current vector by one factor.
+        let sys = CoilSystem::paper_rig();
+        let heading = 45f64.to_radians();
+        let m = in_plane_moment(8.6e-4, heading);
+        let field = DVector::from_vec(vec![
+            OMEGA0 * 1e-3 * heading.cos(),
+            OMEGA0 * 1e-3 * heading.sin(),
+        ]);
+        let n = ALL_COILS.len();
+        let ratings = CoilRatings::uniform(&CoilLimits::default(), n);
+        let settings = ConstrainedSettings {
+            row_weights: Some(DVector::from_vec(vec![1.0, 1.0, 1e4, 1e4])),
+            ..ConstrainedSettings::default()
+        };
+        let step = 0.6;
+        let (mut slewed_miss, mut scaled_miss) = (0.0, 0.0);
+        for (case, p2) in canal_points().into_iter().enumerate() {
+            let p = Vector3::new(p2.x, p2.y, 0.0);
+            let a = actuation_matrix(&sys, &p, &m, &ALL_COILS, OMEGA0);
+            let angle = case as f64;
+            let command = |sign: f64| {
+                DVector::from_vec(vec![
+                    sign * 2e-5 * angle.cos(),
+                    sign * 2e-5 * angle.sin(),
+                    field[0],
+                    field[1],
+                ])
+            };
+            let before = allocate_constrained_rated(&a, &command(1.0), &ratings, &settings)
+                .unwrap()
+                .currents_a;
+            let target = command(-1.0);
+            let slewed =
+                allocate_constrained_slewed(&a, &target, &ratings, &settings, &before, step)
+                    .unwrap();
+            let change = &slewed.currents_a - &before;
+            assert!(
+                change.amax() <= step * (1.0 + 1e-9),
+                "case {case}: {change}"
+            );
+            for k in 0..n {
+                assert!(slewed.currents_a[k].abs() <= ratings.max_current_a[k] * (1.0 + 1e-9));
+            }
+            let free = allocate_constrained_rated(&a, &target, &ratings, &settings)
+                .unwrap()
+                .currents_a;
+            let free_step = &free - &before;
+            let scaled = &before + &free_step * (step / free_step.amax()).min(1.0);
+            let force_miss =
+                |i: &DVector<f64>| ((&a * i).rows(0, 2) - target.rows(0, 2)).norm() / 2e-5;
+            slewed_miss += force_miss(&slewed.currents_a);
+            scaled_miss += force_miss(&scaled);
+            // With no step at all the previous currents come back.
+            let held = allocate_constrained_slewed(&a, &target, &ratings, &settings, &before, 0.0)
+                .unwrap();
+            assert!((&held.currents_a - &before).amax() <= 1e-9);
+        }
+        assert!(
+            slewed_miss < 0.8 * scaled_miss,
+            "slewed misses {slewed_miss}, scaling the step misses {scaled_miss}"
+        );
     }
 
     #[test]

@@ -14,8 +14,8 @@ use std::time::{Duration, Instant};
 use std::sync::Arc;
 
 use fieldmaps::allocation::{
-    actuation_matrix_from, allocate_constrained_rated, allocate_limited_rated, clamp_to_ratings,
-    CoilRatings, ConstrainedSettings,
+    actuation_matrix_from, allocate_constrained_rated, allocate_constrained_slewed,
+    allocate_limited_rated, clamp_to_ratings, CoilRatings, ConstrainedSettings,
 };
 use fieldmaps::coils::CoilField;
 use fieldmaps::physics::{self, wrap_angle};
@@ -83,9 +83,11 @@ pub struct ControlConfig {
     pub use_all_coils: bool,
     /// Latency compensation (`[control.latency]`).
     pub latency: LatencyConfig,
-    /// Fastest change of any coil current while tracking (A/s; none: unlimited). The whole
-    /// current vector moves toward the allocation's by one factor, so the commanded force and
-    /// field turn gradually instead of jumping; hold and safe are never slowed.
+    /// Fastest change of any coil current while tracking (A/s; none: unlimited). The
+    /// allocation is then the constrained one (whatever `constrained_allocation` says) with
+    /// every coil kept within this rate of its previous current: the command is met as far as
+    /// the coils can follow, the coils with room making up for the others. Hold and safe are
+    /// never slowed.
     pub max_current_slew_a_per_s: Option<f64>,
     /// Online correction of the coil gains from the measured heading
     /// (`[control.gain_estimation]`, off by default).
@@ -410,12 +412,40 @@ impl ControlLoop {
         let b = self.field_at(field_heading) - background.xy();
         let c = DVector::from_vec(vec![force.x, force.y, omega0 * b.x, omega0 * b.y]);
         let mut currents = [0.0; MAX_COILS];
-        let allocated = if self.config.constrained_allocation {
-            let w = self.config.field_row_weight;
-            let settings = ConstrainedSettings {
-                row_weights: Some(DVector::from_vec(vec![1.0, 1.0, w, w])),
-                ..ConstrainedSettings::default()
-            };
+        let previous = slew.map(|(previous, max_step_a)| {
+            let previous = DVector::from_iterator(
+                coil_ids.len(),
+                coil_ids
+                    .iter()
+                    .map(|&id| previous.get(id).copied().unwrap_or(0.0)),
+            );
+            (previous, max_step_a)
+        });
+        let w = self.config.field_row_weight;
+        let settings = ConstrainedSettings {
+            row_weights: Some(DVector::from_vec(vec![1.0, 1.0, w, w])),
+            ..ConstrainedSettings::default()
+        };
+        let allocated = if let Some((previous, max_step_a)) = &previous {
+            // Under a slew limit the allocation itself stays within reach of the previous
+            // currents, so the coils that can follow make up for those that cannot.
+            let previous_effective = DVector::from_iterator(
+                previous.len(),
+                previous
+                    .iter()
+                    .zip(&self.saturation)
+                    .map(|(&i, curve)| curve.as_ref().map_or(i, |c| c.effective(i))),
+            );
+            allocate_constrained_slewed(
+                &a,
+                &c,
+                &self.effective_ratings,
+                &settings,
+                &previous_effective,
+                *max_step_a,
+            )
+            .map(|a| a.currents_a)
+        } else if self.config.constrained_allocation {
             allocate_constrained_rated(&a, &c, &self.effective_ratings, &settings)
                 .map(|a| a.currents_a)
         } else {
@@ -431,16 +461,11 @@ impl ControlLoop {
                     .zip(&self.saturation)
                     .map(|(&i, curve)| curve.as_ref().map_or(i, |c| c.actual_for(i))),
             );
-            if let Some((previous, max_step_a)) = slew {
-                let previous = DVector::from_iterator(
-                    coil_ids.len(),
-                    coil_ids
-                        .iter()
-                        .map(|&id| previous.get(id).copied().unwrap_or(0.0)),
-                );
-                let step = &allocated - &previous;
+            // Guard: a saturating coil's real current may step further than its effective one.
+            if let Some((previous, max_step_a)) = &previous {
+                let step = &allocated - previous;
                 let largest = step.amax();
-                if largest > max_step_a {
+                if largest > *max_step_a {
                     allocated = previous + step * (max_step_a / largest);
                 }
             }
