@@ -17,6 +17,33 @@ pub fn translational_damping(viscosity_pa_s: f64, length_m: f64, radius_m: f64) 
     2.0 * std::f64::consts::PI * viscosity_pa_s * length_m / (length_m / radius_m).ln()
 }
 
+/// Factor by which a plane wall multiplies the drag of a body of radius `radius_m` translating
+/// parallel to it with a gap `gap_m` between body and wall (1 far away, growing without bound
+/// as the gap closes). The larger of two sphere results, each valid at its own end:
+/// Faxén's series for the centre at h = r + gap, 1 / (1 − 9/16 (r/h) + 1/8 (r/h)³ −
+/// 45/256 (r/h)⁴ − 1/16 (r/h)⁵) (Happel & Brenner, *Low Reynolds number hydrodynamics*, 1965,
+/// Eq. 7-4.28), and the lubrication limit of Goldman, Cox & Brenner (*Chem. Eng. Sci.* 22,
+/// 637–651, 1967), 8/15 ln(r/gap) + 0.9588. For a capsule lying on the phantom floor, `radius_m`
+/// is its cross-section's radius: a sphere of that radius is the closest shape with a closed
+/// form (a cylinder parallel to the wall has a stronger, gap^-½, lubrication singularity, so this
+/// is a lower bound). NaN for a non-positive radius or a negative gap.
+pub fn wall_drag_factor_parallel(gap_m: f64, radius_m: f64) -> f64 {
+    if !(radius_m > 0.0 && gap_m >= 0.0) {
+        return f64::NAN;
+    }
+    let ratio = radius_m / (radius_m + gap_m);
+    let faxen = 1.0
+        / (1.0 - 9.0 / 16.0 * ratio + ratio.powi(3) / 8.0
+            - 45.0 / 256.0 * ratio.powi(4)
+            - ratio.powi(5) / 16.0);
+    let lubrication = if gap_m > 0.0 {
+        8.0 / 15.0 * (radius_m / gap_m).ln() + 0.9588
+    } else {
+        f64::INFINITY
+    };
+    faxen.max(lubrication).max(1.0)
+}
+
 /// Slender-body rotational drag of a capsule about a transverse axis, N·m·s:
 /// π μ L³ / (3 (ln(L/r) − 0.8)), the log term floored at 0.1 to stay finite for stubby bodies.
 /// With a magnet of moment |m| in a field |B| the capsule turns into the field with time
@@ -87,6 +114,27 @@ pub fn wrap_angle(a: f64) -> f64 {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn the_wall_correction_matches_both_limits_and_grows_as_the_gap_closes() {
+        let r = 1.4e-3;
+        // Far away: no correction; Faxén at h = 2r: 1 / (1 − 9/32 + 1/64 − 45/4096 − 1/512).
+        assert!((wall_drag_factor_parallel(1.0, r) - 1.0).abs() < 1e-3);
+        let faxen_2r = 1.0 / (1.0 - 9.0 / 32.0 + 1.0 / 64.0 - 45.0 / 4096.0 - 1.0 / 512.0);
+        assert!((wall_drag_factor_parallel(r, r) - faxen_2r).abs() < 1e-12);
+        // Near contact: Goldman, Cox & Brenner's 8/15 ln(r/δ) + 0.9588 (3.41 at δ = r/100).
+        let gcb = 8.0 / 15.0 * 100f64.ln() + 0.9588;
+        assert!((wall_drag_factor_parallel(r / 100.0, r) - gcb).abs() < 1e-12);
+        let mut last = 1.0;
+        for gap in [1e-2, 1e-3, 3e-4, 1e-4, 3e-5, 1e-5, 1e-6] {
+            let factor = wall_drag_factor_parallel(gap, r);
+            assert!(factor >= last, "gap {gap}: {factor} < {last}");
+            last = factor;
+        }
+        assert!(wall_drag_factor_parallel(0.0, r).is_infinite());
+        assert!(wall_drag_factor_parallel(-1e-6, r).is_nan());
+        assert!(wall_drag_factor_parallel(1e-6, 0.0).is_nan());
+    }
+
     use super::*;
 
     #[test]

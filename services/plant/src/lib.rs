@@ -191,6 +191,14 @@ pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
             field("physics.substep_ms")
         )));
     }
+    if let Some(gap) = config.physics.floor_gap_m {
+        if !(gap.is_finite() && gap > 0.0) {
+            return Err(ConfigError::new(format!(
+                "{} must be > 0 m (leave it out for free-stream drag), got {gap}",
+                field("physics.floor_gap_m")
+            )));
+        }
+    }
     if let Some(start) = config.initial_position_mm {
         if start.iter().any(|v| !v.is_finite()) {
             return Err(ConfigError::new(format!(

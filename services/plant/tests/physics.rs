@@ -45,6 +45,32 @@ fn no_motion_without_current_or_flow() {
 }
 
 #[test]
+fn a_floor_gap_slows_the_capsule_by_the_wall_correction() {
+    let free = model(FlowMap::zero(), linear_only(), 1);
+    let gap = 2e-5;
+    let on_floor = model(
+        FlowMap::zero(),
+        PlantPhysicsConfig {
+            floor_gap_m: Some(gap),
+            ..linear_only()
+        },
+        1,
+    );
+    let factor = fieldmaps::physics::wall_drag_factor_parallel(gap, free.robot.diameter_m / 2.0);
+    assert!(factor > 2.0 && factor < 4.0, "{factor}");
+    assert!((on_floor.linear_drag() / free.linear_drag() - factor).abs() < 1e-9);
+    let terminal_speed = |m: &PlantModel| {
+        let mut s = m.initial_state(ra_start(), 0.3);
+        for _ in 0..200 {
+            m.step(&mut s, &currents(0.02, 9), FRAME_S);
+        }
+        s.velocity_mps.norm() / s.last_magnetic_force_n.norm()
+    };
+    let ratio = terminal_speed(&free) / terminal_speed(&on_floor);
+    assert!((ratio / factor - 1.0).abs() < 0.02, "{ratio} vs {factor}");
+}
+
+#[test]
 fn terminal_velocity_is_force_over_linear_drag() {
     let m = model(FlowMap::zero(), linear_only(), 1);
     let mut s = m.initial_state(ra_start(), 0.3);
