@@ -200,6 +200,46 @@ pub fn set_in_table(
     Ok(())
 }
 
+/// Sections of a scenario that `--set` may change: the services' tables. The run, fluid and
+/// trajectory tables are the matrix's own (flags and cells set them).
+pub const SETTABLE_SECTIONS: [&str; 6] = [
+    "plant",
+    "vision",
+    "flow",
+    "control",
+    "coilbus",
+    "supervisor",
+];
+
+/// Applies one `--set KEY=VALUE` to a scenario's service tables: KEY a dotted path such as
+/// `plant.physics.floor_gap_m`, VALUE a TOML value (`3e-6`, `true`, `"classical"`, `[1, 2]`).
+/// A key outside the services' tables or a value that is not TOML is an error naming it;
+/// whether the key exists is for the services' own checks, which name the field.
+pub fn apply_setting(sections: &mut toml::Table, setting: &str) -> anyhow::Result<()> {
+    let (key, value) = setting
+        .split_once('=')
+        .with_context(|| format!("--set {setting:?}: expected KEY=VALUE"))?;
+    let path: Vec<&str> = key.trim().split('.').collect();
+    anyhow::ensure!(
+        path.len() >= 2 && path.iter().all(|p| !p.is_empty()),
+        "--set {setting:?}: KEY must be a dotted path into a table, e.g. plant.physics.floor_gap_m"
+    );
+    anyhow::ensure!(
+        SETTABLE_SECTIONS.contains(&path[0]),
+        "--set {setting:?}: {:?} is not a service table (one of {}); the run, fluid and \
+         trajectory tables come from the flags and the matrix",
+        path[0],
+        SETTABLE_SECTIONS.join(", ")
+    );
+    let parsed: toml::Table = toml::from_str(&format!("value = {}", value.trim()))
+        .with_context(|| format!("--set {setting:?}: the value is not a TOML value"))?;
+    let value = parsed
+        .get("value")
+        .cloned()
+        .with_context(|| format!("--set {setting:?}: no value"))?;
+    set_in_table(sections, &path, value)
+}
+
 /// A scenario as a TOML document: its run, fluid and trajectory tables and every other section.
 pub fn scenario_document(scenario: &Scenario) -> anyhow::Result<toml::Table> {
     let mut doc: toml::Table = toml::Table::new();
@@ -270,9 +310,18 @@ pub fn cell_scenario(base: &Scenario, cell: &Cell) -> anyhow::Result<String> {
                 .get("smc")
                 .and_then(|v| v.as_table().cloned())
                 .unwrap_or_default();
-            smc.insert("k4_n".into(), paper.flow_k4_n.into());
-            smc.insert("eta_s".into(), paper.flow_eta_s.into());
-            smc.insert("phi_m".into(), paper.flow_phi_m.into());
+            // The base scenario's flow gains where it gives them, else the paper's.
+            let flow_gain = |key: &str, paper: f64| {
+                smc.get(key)
+                    .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+                    .unwrap_or(paper)
+            };
+            let k4 = flow_gain("flow_k4_n", paper.flow_k4_n);
+            let eta = flow_gain("flow_eta_s", paper.flow_eta_s);
+            let phi = flow_gain("flow_phi_m", paper.flow_phi_m);
+            smc.insert("k4_n".into(), k4.into());
+            smc.insert("eta_s".into(), eta.into());
+            smc.insert("phi_m".into(), phi.into());
             control.insert("smc".into(), smc.into());
         }
         _ => {}
@@ -789,6 +838,30 @@ pub fn write_rrd(
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_setting_lands_in_its_table_and_bad_ones_are_named() {
+        let mut sections = toml::Table::new();
+        apply_setting(&mut sections, "plant.physics.floor_gap_m=3e-6").unwrap();
+        apply_setting(&mut sections, "control.controller = \"pid\"").unwrap();
+        assert_eq!(
+            sections["plant"]["physics"]["floor_gap_m"].as_float(),
+            Some(3e-6)
+        );
+        assert_eq!(sections["control"]["controller"].as_str(), Some("pid"));
+        for (bad, says) in [
+            ("plant.physics.floor_gap_m", "KEY=VALUE"),
+            ("floor_gap_m=1", "dotted path"),
+            ("fluid.viscosity_cp=4.3", "not a service table"),
+            ("plant.physics.floor_gap_m=three", "not a TOML value"),
+        ] {
+            let message = format!("{:#}", apply_setting(&mut sections, bad).unwrap_err());
+            assert!(
+                message.contains(says) && message.contains(bad),
+                "{bad}: {message}"
+            );
+        }
+    }
+
     use super::*;
 
     #[test]

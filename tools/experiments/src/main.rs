@@ -128,6 +128,11 @@ struct MatrixArgs {
     /// false`) instead of the state predicted for the actuation time.
     #[arg(long)]
     no_latency_compensation: bool,
+    /// Set one key of the base scenario's service tables for every cell, e.g.
+    /// `--set plant.physics.floor_gap_m=3e-6` or `--set control.velocity_filter_ms=60`
+    /// (repeatable; VALUE is TOML; applied after the flags above, checked by the services).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    settings: Vec<String>,
     /// Skip the per-run Rerun recordings of fast mode (`<out>/runs/<cell>.rrd`; process mode
     /// always keeps each run's `run.rrd` under `<out>/runs/<cell>/run/`).
     #[arg(long)]
@@ -551,8 +556,8 @@ fn bin_dir() -> anyhow::Result<PathBuf> {
         .to_owned())
 }
 
-/// The base scenario, with `--frame-period-ms`, `--camera-latency-ms`, `--coil-gain-error`
-/// and `--no-latency-compensation` applied.
+/// The base scenario, with `--frame-period-ms`, `--camera-latency-ms`, `--coil-gain-error`,
+/// `--no-latency-compensation` and every `--set` applied.
 fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
     let mut base = Scenario::load(&args.base)
         .with_context(|| format!("base scenario {}", args.base.display()))?;
@@ -597,6 +602,24 @@ fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
             &["control", "latency", "compensate"],
             toml::Value::Boolean(false),
         )?;
+    }
+    for setting in &args.settings {
+        millinav_experiments::apply_setting(&mut base.sections, setting)?;
+    }
+    if !args.settings.is_empty() {
+        // A misspelt key or a bad value fails here, naming the field, not in every cell.
+        let what = || format!("--set {}", args.settings.join(" --set "));
+        millinav_plant::check_config(&base).with_context(what)?;
+        millinav_control::check_config(&base).with_context(what)?;
+        millinav_flow::check_config(&base).with_context(what)?;
+        millinav_coilbus::check_config(&base).with_context(what)?;
+        if args
+            .settings
+            .iter()
+            .any(|s| s.trim_start().starts_with("vision."))
+        {
+            millinav_vision::check_config(&base).with_context(what)?;
+        }
     }
     Ok(base)
 }

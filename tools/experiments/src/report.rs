@@ -567,10 +567,15 @@ pub fn table_header(mode: &str, base: &Scenario) -> anyhow::Result<String> {
     let gain_error = get(&["plant", "physics", "coil_gain_error_std"])
         .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
         .unwrap_or(millinav_plant::model::PlantPhysicsConfig::default().coil_gain_error_std);
+    let floor = get(&["plant", "physics", "floor_gap_m"])
+        .and_then(|v| v.as_float())
+        .map_or(String::new(), |gap| {
+            format!(", capsule on the floor ({:.0} µm gap)", gap * 1e6)
+        });
     let rig = base.rig()?;
     Ok(format!(
         "{mode}, {} ms frame period, {} ms extra camera latency ({}), per-coil gain error σ {:.0} % \
-         unknown to control, rig {} ({})",
+         unknown to control{floor}, rig {} ({})",
         base.run.frame_period_ms,
         frames as f64 * base.run.frame_period_ms,
         if compensated {
