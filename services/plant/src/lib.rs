@@ -199,6 +199,14 @@ pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
             )));
         }
     }
+    if let Some(factor) = config.physics.floor_flow_factor {
+        if !(factor.is_finite() && factor > 0.0) {
+            return Err(ConfigError::new(format!(
+                "{} must be > 0, got {factor}",
+                field("physics.floor_flow_factor")
+            )));
+        }
+    }
     if let Some(start) = config.initial_position_mm {
         if start.iter().any(|v| !v.is_finite()) {
             return Err(ConfigError::new(format!(

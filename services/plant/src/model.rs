@@ -63,6 +63,14 @@ pub struct PlantPhysicsConfig {
     /// nearly neutrally buoyant capsule in a planar phantom rests on a wall, and the gap (the
     /// roughness of the two surfaces, a lubricating film) is what the paper does not give.
     pub floor_gap_m: Option<f64>,
+    /// Factor of the flow's push on the capsule relative to its free-stream drag (none: the
+    /// same factor as its own motion, [`Self::floor_gap_m`]'s). A body held against a wall
+    /// is pushed by the flow less than it is braked moving through still fluid: a sphere
+    /// touching a wall in shear flow feels 1.7005 × the Stokes drag of the undisturbed speed
+    /// at its centre (Goldman, Cox & Brenner, *Chem. Eng. Sci.* 22, 653–660, 1967), against
+    /// 3–4 × for its own motion at micron gaps. Taking the flow map's speed as the speed at
+    /// the capsule's centre (a capsule filling much of a shallow canal's depth), 1.7.
+    pub floor_flow_factor: Option<f64>,
     /// Time-varying vortex in the recirculation zone (`[plant.physics.recirculation]`).
     pub recirculation: RecirculationConfig,
     /// Correlated flow noise (`[plant.physics.flow_noise]`).
@@ -81,6 +89,7 @@ impl Default for PlantPhysicsConfig {
             floor_friction_coefficient: 0.0,
             floor_extra_load_n: 0.0,
             floor_gap_m: None,
+            floor_flow_factor: None,
             recirculation: RecirculationConfig::default(),
             flow_noise: FlowNoiseConfig::default(),
         }
@@ -131,6 +140,8 @@ pub struct PlantModel {
     pub disturbance: FlowDisturbance,
     seed: u64,
     linear_drag_n_s_per_m: f64,
+    /// Linear drag coefficient of the flow's push (differs from the capsule's own on a floor).
+    flow_coupling_n_s_per_m: f64,
     quadratic_drag_n_s2_per_m2: f64,
     rotational_drag_n_m_s: f64,
     /// Apparent weight on the floor (m − ρV)·g, N (may be negative: buoyant).
@@ -158,8 +169,10 @@ impl PlantModel {
         let floor_factor = config
             .floor_gap_m
             .map_or(1.0, |gap| physics::wall_drag_factor_parallel(gap, radius));
-        let linear = physics::translational_damping(fluid.viscosity_pa_s, robot.length_m, radius)
-            * floor_factor;
+        let free_stream =
+            physics::translational_damping(fluid.viscosity_pa_s, robot.length_m, radius);
+        let linear = free_stream * floor_factor;
+        let flow_coupling = free_stream * config.floor_flow_factor.unwrap_or(floor_factor);
         // Projected area of the capsule seen broadside and end-on, averaged.
         let area = 0.5 * (robot.diameter_m * robot.length_m)
             + 0.5 * std::f64::consts::PI * radius * radius;
@@ -186,6 +199,7 @@ impl PlantModel {
             disturbance,
             seed,
             linear_drag_n_s_per_m: linear,
+            flow_coupling_n_s_per_m: flow_coupling,
             quadratic_drag_n_s2_per_m2: quadratic,
             rotational_drag_n_m_s: rotational,
             apparent_weight_n: apparent_weight,
@@ -325,7 +339,7 @@ impl PlantModel {
         let mass = self.robot.mass_kg + self.robot.added_mass_kg;
         // Semi-implicit in the linear drag, which is the stiff term at low viscosity.
         let c = self.linear_drag_n_s_per_m;
-        let explicit = force + quadratic + flow * c;
+        let explicit = force + quadratic + flow * self.flow_coupling_n_s_per_m;
         state.velocity_mps = (state.velocity_mps + explicit * (h / mass)) / (1.0 + c * h / mass);
         let mu = self.config.floor_friction_coefficient;
         let normal_load = (self.apparent_weight_n + pull_down_n).max(0.0)

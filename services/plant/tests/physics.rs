@@ -71,6 +71,43 @@ fn a_floor_gap_slows_the_capsule_by_the_wall_correction() {
 }
 
 #[test]
+fn on_the_floor_the_flow_pushes_with_its_own_factor() {
+    // Uniform steady flow, no current, no pulsation or disturbances: the capsule drifts at
+    // flow × (flow factor / floor factor) once the transient has passed.
+    let uniform = FlowMap {
+        velocity_mps: vec![Vector2::new(2e-3, 0.0); 4],
+        ..FlowMap::zero()
+    };
+    let gap = 3e-6;
+    let config = PlantPhysicsConfig {
+        floor_gap_m: Some(gap),
+        floor_flow_factor: Some(1.7),
+        pulsation_amplitude: 0.0,
+        recirculation: millinav_plant::trueflow::RecirculationConfig {
+            strength_fraction: 0.0,
+            ..Default::default()
+        },
+        flow_noise: millinav_plant::trueflow::FlowNoiseConfig {
+            fraction: 0.0,
+            ..Default::default()
+        },
+        ..linear_only()
+    };
+    let m = model(uniform, config, 3);
+    let factor = fieldmaps::physics::wall_drag_factor_parallel(gap, m.robot.diameter_m / 2.0);
+    let mut s = m.initial_state(ra_start(), 0.0);
+    for _ in 0..100 {
+        m.step(&mut s, &[0.0; COIL_COUNT], FRAME_S);
+    }
+    let expected = 2e-3 * 1.7 / factor;
+    assert!(
+        (s.velocity_mps.x / expected - 1.0).abs() < 0.01 && s.velocity_mps.y.abs() < 1e-9,
+        "{:?} vs {expected}",
+        s.velocity_mps
+    );
+}
+
+#[test]
 fn terminal_velocity_is_force_over_linear_drag() {
     let m = model(FlowMap::zero(), linear_only(), 1);
     let mut s = m.initial_state(ra_start(), 0.3);
