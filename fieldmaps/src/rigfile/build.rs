@@ -10,8 +10,8 @@ use nalgebra::{Unit, Vector2, Vector3};
 use super::key_path::key_path_at;
 use super::schema;
 use super::{
-    CameraPixelFormat, FieldModel, FlowCondition, Rig, RigCamera, RigCoil, RigCoilField,
-    RigFileError, RigPhantom, Route, Zone, ZoneKind, MAX_FILAMENTS, MAX_RIG_COILS,
+    CameraCalibration, CameraPixelFormat, FieldModel, FlowCondition, Rig, RigCamera, RigCoil,
+    RigCoilField, RigFileError, RigPhantom, Route, Zone, ZoneKind, MAX_FILAMENTS, MAX_RIG_COILS,
 };
 use super::{RIG_FORMAT, RIG_VERSION};
 use crate::calibration::{CalibratedField, CoilCalibration};
@@ -489,19 +489,142 @@ fn build_camera(ctx: &Ctx<'_>, c: &schema::CameraSection) -> Result<RigCamera, R
             format!("must be finite, got {}", fmt_vec(&c.origin_mm)),
         ));
     }
+    let geometry = ImageGeometry {
+        width_px: c.width_px,
+        height_px: c.height_px,
+        mm_per_px: c.mm_per_px,
+        origin_x_mm: c.origin_mm[0],
+        origin_y_mm: c.origin_mm[1],
+    };
+    let calibration = match &c.calibration {
+        Some(section) => Some(build_camera_calibration(ctx, section, &geometry)?),
+        None => None,
+    };
     Ok(RigCamera {
-        geometry: ImageGeometry {
-            width_px: c.width_px,
-            height_px: c.height_px,
-            mm_per_px: c.mm_per_px,
-            origin_x_mm: c.origin_mm[0],
-            origin_y_mm: c.origin_mm[1],
-        },
+        geometry,
         pixel_format: match c.pixel_format {
             schema::PixelFormatName::Rgb8 => CameraPixelFormat::Rgb8,
             schema::PixelFormatName::Gray8 => CameraPixelFormat::Gray8,
         },
+        calibration,
     })
+}
+
+fn build_camera_calibration(
+    ctx: &Ctx<'_>,
+    c: &schema::CameraCalibrationSection,
+    view: &ImageGeometry,
+) -> Result<CameraCalibration, RigFileError> {
+    let key = |k: &str| format!("camera.calibration.{k}");
+    if c.image_width == 0 || c.image_height == 0 {
+        return Err(ctx.err(key("image_width"), "the raw image size must be > 0"));
+    }
+    if u64::from(c.image_width) * u64::from(c.image_height) > ImageGeometry::MAX_PIXELS {
+        return Err(ctx.err(
+            key("image_width"),
+            format!("exceeds {} pixels", ImageGeometry::MAX_PIXELS),
+        ));
+    }
+    let k = &c.camera_matrix;
+    let pinhole = finite(k)
+        && k[0] > 0.0
+        && k[4] > 0.0
+        && k[1] == 0.0
+        && k[3] == 0.0
+        && k[6..] == [0.0, 0.0, 1.0];
+    if !pinhole {
+        return Err(ctx.err(
+            key("camera_matrix"),
+            format!(
+                "must be [fx, 0, cx, 0, fy, cy, 0, 0, 1] with fx, fy > 0, got {}",
+                fmt_vec(k)
+            ),
+        ));
+    }
+    if c.distortion_model != "plumb_bob" {
+        return Err(ctx.err(
+            key("distortion_model"),
+            format!(
+                "{:?} is not supported; \"plumb_bob\" (k1, k2, p1, p2, k3) is",
+                c.distortion_model
+            ),
+        ));
+    }
+    let distortion: [f64; 5] = c
+        .distortion_coefficients
+        .as_slice()
+        .try_into()
+        .ok()
+        .filter(|d: &[f64; 5]| finite(d))
+        .ok_or_else(|| {
+            ctx.err(
+                key("distortion_coefficients"),
+                format!(
+                    "plumb_bob needs 5 finite numbers (k1, k2, p1, p2, k3), got {}",
+                    fmt_vec(&c.distortion_coefficients)
+                ),
+            )
+        })?;
+    for (name, value) in [
+        ("reprojection_error_px", c.reprojection_error_px),
+        ("registration_residual_mm", c.registration_residual_mm),
+    ] {
+        if value.is_some_and(|v| !(v.is_finite() && v >= 0.0)) {
+            return Err(ctx.err(key(name), "must be finite and >= 0"));
+        }
+    }
+    if let Some(h) = &c.image_to_world_mm {
+        check_registration(c, h, view).map_err(|m| ctx.err(key("image_to_world_mm"), m))?;
+    }
+    Ok(CameraCalibration {
+        image_width: c.image_width,
+        image_height: c.image_height,
+        camera_matrix: *k,
+        distortion_coefficients: distortion,
+        reprojection_error_px: c.reprojection_error_px,
+        image_to_world_mm: c.image_to_world_mm,
+        registration_residual_mm: c.registration_residual_mm,
+    })
+}
+
+/// The homography must be invertible and bring the whole canonical view into the raw image
+/// (undistorted pixels, with a pixel of slack): a view partly outside the camera's image would
+/// show vision a phantom that is not there.
+fn check_registration(
+    c: &schema::CameraCalibrationSection,
+    h: &[f64; 9],
+    view: &ImageGeometry,
+) -> Result<(), String> {
+    let m = nalgebra::Matrix3::from_row_slice(h);
+    let inverse = m
+        .try_inverse()
+        .filter(|i| h.iter().all(|v| v.is_finite()) && i.iter().all(|v| v.is_finite()))
+        .ok_or_else(|| {
+            format!(
+                "must be a finite, invertible 3x3 matrix, got {}",
+                fmt_vec(h)
+            )
+        })?;
+    let x0 = view.origin_x_mm;
+    let y0 = view.origin_y_mm;
+    let x1 = x0 + f64::from(view.width_px) * view.mm_per_px;
+    let y1 = y0 - f64::from(view.height_px) * view.mm_per_px;
+    for (x, y) in [(x0, y0), (x1, y0), (x1, y1), (x0, y1)] {
+        let p = inverse * nalgebra::Vector3::new(x, y, 1.0);
+        let (u, v) = (p.x / p.z, p.y / p.z);
+        let inside = p.z.abs() > 1e-12
+            && (-1.0..=f64::from(c.image_width) + 1.0).contains(&u)
+            && (-1.0..=f64::from(c.image_height) + 1.0).contains(&v);
+        if !inside {
+            return Err(format!(
+                "the canonical view's corner ({x:.2}, {y:.2}) mm falls at pixel ({u:.1}, {v:.1}), \
+                 outside the {}x{} px camera image: the registration maps the phantom outside \
+                 the image",
+                c.image_width, c.image_height
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The mask must cover exactly the camera's field of view: its size in pixels is the camera's

@@ -164,8 +164,28 @@ pub enum CameraPixelFormat {
 /// The top camera: resolution, pixel layout and image ↔ world mapping.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RigCamera {
+    /// The canonical top view: the frames vision sees (a real camera's are rectified to it).
     pub geometry: ImageGeometry,
     pub pixel_format: CameraPixelFormat,
+    /// The real camera's lens and its registration to the world (`[camera.calibration]`).
+    pub calibration: Option<CameraCalibration>,
+}
+
+/// A real camera's intrinsics (pinhole + OpenCV's 5-coefficient `plumb_bob` distortion, ROS
+/// `camera_info` names) and the homography from its undistorted pixels to the world plane.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraCalibration {
+    /// The raw frames' size (what the camera delivers, before rectification).
+    pub image_width: u32,
+    pub image_height: u32,
+    /// Row-major K = [fx 0 cx; 0 fy cy; 0 0 1], px.
+    pub camera_matrix: [f64; 9],
+    /// k1, k2, p1, p2, k3.
+    pub distortion_coefficients: [f64; 5],
+    pub reprojection_error_px: Option<f64>,
+    /// Undistorted raw pixels → world mm (row-major 3x3); none until `calib homography` ran.
+    pub image_to_world_mm: Option<[f64; 9]>,
+    pub registration_residual_mm: Option<f64>,
 }
 
 /// A flow condition with its steady map.

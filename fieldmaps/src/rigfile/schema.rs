@@ -81,6 +81,28 @@ pub(crate) struct CameraSection {
     pub pixel_format: PixelFormatName,
     pub mm_per_px: f64,
     pub origin_mm: [f64; 2],
+    /// The real camera's lens and registration (`calib` writes it); none for a camera that
+    /// delivers the canonical top view itself.
+    #[serde(default)]
+    pub calibration: Option<CameraCalibrationSection>,
+}
+
+/// ROS `camera_info` names for the intrinsics; the registration is ours.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct CameraCalibrationSection {
+    pub image_width: u32,
+    pub image_height: u32,
+    pub camera_matrix: [f64; 9],
+    pub distortion_model: String,
+    pub distortion_coefficients: Vec<f64>,
+    #[serde(default)]
+    pub reprojection_error_px: Option<f64>,
+    /// Undistorted raw-image pixels → world mm, row-major 3x3.
+    #[serde(default)]
+    pub image_to_world_mm: Option<[f64; 9]>,
+    #[serde(default)]
+    pub registration_residual_mm: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]
