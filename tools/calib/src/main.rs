@@ -61,6 +61,16 @@ enum Command {
         #[arg(long)]
         write: bool,
     },
+    /// Writes what a camera of known lens would deliver, to try the other commands without a
+    /// camera: 16 checkerboard views (8x5 inner corners, 25 mm squares), the fiducials CSV of
+    /// a top camera tilted over the rig's phantom, and a raw frame of the phantom mask.
+    Synth {
+        /// The rig whose phantom the top camera sees.
+        #[arg(long)]
+        rig: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Rectifies a raw frame onto the rig's canonical top view with its calibration and draws
     /// the phantom mask's outline over it: where the outline misses the canal, the
     /// registration is off.
@@ -135,6 +145,7 @@ fn main() -> anyhow::Result<()> {
             write,
         } => homography(&fiducials, &rig, write),
         Command::Check { rig, frame, out } => check(&rig, &frame, &out),
+        Command::Synth { rig, out } => synth(&rig, &out),
     }
 }
 
@@ -287,6 +298,95 @@ fn check(rig_path: &Path, frame_path: &Path, out: &Path) -> anyhow::Result<()> {
         view.width_px,
         view.height_px,
         contours.len()
+    );
+    Ok(())
+}
+
+fn synth(rig_path: &Path, out: &Path) -> anyhow::Result<()> {
+    use millinav_calib::synthetic::{
+        board_pose, board_shade, project, render_plane, top_camera_pose, CALIBRATION_POSES,
+        DEMO_BOARD, DEMO_LENS,
+    };
+    let rig = Rig::load(rig_path)?;
+    let views = out.join("views");
+    std::fs::create_dir_all(&views)
+        .with_context(|| format!("cannot create {}", views.display()))?;
+    let bar =
+        indicatif::ProgressBar::new(CALIBRATION_POSES.len() as u64 + 1).with_message("rendering");
+    for (k, &(tilt, centre)) in CALIBRATION_POSES.iter().enumerate() {
+        let image = render_plane(
+            &DEMO_LENS,
+            &board_pose(&DEMO_BOARD, tilt, centre),
+            2,
+            2.0,
+            k as u64,
+            board_shade(&DEMO_BOARD),
+        )?;
+        let path = views.join(format!("view{k:02}.png"));
+        anyhow::ensure!(
+            imgcodecs::imwrite_def(&path, &image)?,
+            "cannot write {}",
+            path.display()
+        );
+        bar.inc(1);
+    }
+    // A top camera above the view's centre, high enough that the view fills about half of the
+    // image's height, tilted by a few degrees.
+    let g = rig.camera.geometry;
+    let (w_m, h_m) = (
+        f64::from(g.width_px) * g.mm_per_px * 1e-3,
+        f64::from(g.height_px) * g.mm_per_px * 1e-3,
+    );
+    let centre = (
+        g.origin_x_mm * 1e-3 + w_m / 2.0,
+        g.origin_y_mm * 1e-3 - h_m / 2.0,
+    );
+    let height = h_m.max(w_m) * DEMO_LENS.camera_matrix[4] / (0.5 * f64::from(DEMO_LENS.height));
+    let pose = top_camera_pose([centre.0, centre.1, height], (0.10, -0.07, 0.04));
+    let mask = &rig.phantom.mask;
+    let frame = render_plane(&DEMO_LENS, &pose, 2, 2.0, 99, |x, y| {
+        if mask.contains(&nalgebra::Vector2::new(x, y)) {
+            225.0
+        } else {
+            45.0
+        }
+    })?;
+    let frame_path = out.join("frame.png");
+    anyhow::ensure!(
+        imgcodecs::imwrite_def(&frame_path, &frame)?,
+        "cannot write {}",
+        frame_path.display()
+    );
+    bar.inc(1);
+    bar.finish_and_clear();
+    // Nine fiducials over the view (a 3x3 grid at 10 % and 90 % of it and its middle).
+    let mut csv = String::from("name,u_px,v_px,x_mm,y_mm\n");
+    let mut world = Vec::new();
+    for (j, fy) in [0.1, 0.5, 0.9].iter().enumerate() {
+        for (i, fx) in [0.1, 0.5, 0.9].iter().enumerate() {
+            let x = g.origin_x_mm + fx * w_m * 1e3;
+            let y = g.origin_y_mm - fy * h_m * 1e3;
+            world.push((format!("f{j}{i}"), x, y));
+        }
+    }
+    let points: Vec<[f64; 3]> = world
+        .iter()
+        .map(|(_, x, y)| [x * 1e-3, y * 1e-3, 0.0])
+        .collect();
+    for ((name, x, y), (u, v)) in world.iter().zip(project(&DEMO_LENS, &pose, &points)?) {
+        csv.push_str(&format!("{name},{u:.3},{v:.3},{x:.3},{y:.3}\n"));
+    }
+    let csv_path = out.join("fiducials.csv");
+    std::fs::write(&csv_path, csv)
+        .with_context(|| format!("cannot write {}", csv_path.display()))?;
+    println!(
+        "{}: {} checkerboard views (8x5 inner corners, 25 mm squares) in views/, frame.png (the \
+         phantom through a tilted {}x{} px camera {:.0} mm up) and fiducials.csv",
+        out.display(),
+        CALIBRATION_POSES.len(),
+        DEMO_LENS.width,
+        DEMO_LENS.height,
+        height * 1e3
     );
     Ok(())
 }

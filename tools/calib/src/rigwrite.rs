@@ -82,8 +82,13 @@ pub fn write(path: &Path, update: Update<'_>) -> Result<(), CalibError> {
         }
         Err(e) => {
             let _ = std::fs::remove_file(&checked_path);
+            // The loader names the file it read; that is this rig file, with the new table.
+            let reason = e.to_string().replace(
+                &checked_path.display().to_string(),
+                &path.display().to_string(),
+            );
             Err(bad(format!(
-                "left unchanged: with the new calibration it would not load: {e}"
+                "left unchanged: with the new calibration it would not load: {reason}"
             )))
         }
     }

@@ -170,3 +170,73 @@ pub fn board_shade(board: &Checkerboard) -> impl Fn(f64, f64) -> f64 + '_ {
         }
     }
 }
+
+/// `board` tilted by the Euler angles (rx, ry, rz) rad with its centre at `centre` (m) in the
+/// camera frame.
+pub fn board_pose(board: &Checkerboard, (rx, ry, rz): (f64, f64, f64), centre: [f64; 3]) -> Pose {
+    let r = nalgebra::Rotation3::from_euler_angles(rx, ry, rz);
+    let c = nalgebra::Vector3::new(
+        f64::from(board.cols - 1) * board.square_m / 2.0,
+        f64::from(board.rows - 1) * board.square_m / 2.0,
+        0.0,
+    );
+    let t = nalgebra::Vector3::from_row_slice(&centre) - r * c;
+    let axis = r.scaled_axis();
+    Pose {
+        rvec: [axis.x, axis.y, axis.z],
+        tvec: [t.x, t.y, t.z],
+    }
+}
+
+/// A camera above the world plane looking down (image right = world x, image down = world −y),
+/// its optical centre at `centre_m`, then tilted by the Euler angles `tilt` (rad): a top camera
+/// that is not square to the phantom.
+pub fn top_camera_pose(centre_m: [f64; 3], tilt: (f64, f64, f64)) -> Pose {
+    let down = nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(
+        1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0,
+    ));
+    let r = nalgebra::Rotation3::from_euler_angles(tilt.0, tilt.1, tilt.2) * down;
+    let t = -(r * nalgebra::Vector3::from_row_slice(&centre_m));
+    let axis = r.scaled_axis();
+    Pose {
+        rvec: [axis.x, axis.y, axis.z],
+        tvec: [t.x, t.y, t.z],
+    }
+}
+
+/// Board poses that cover the image (centre, tilts, rotations, the four corners): what a
+/// careful calibration session takes.
+pub const CALIBRATION_POSES: [((f64, f64, f64), [f64; 3]); 16] = [
+    ((0.0, 0.0, 0.0), [0.0, 0.0, 0.45]),
+    ((0.35, 0.0, 0.1), [-0.12, -0.08, 0.42]),
+    ((-0.3, 0.2, -0.1), [0.12, 0.08, 0.45]),
+    ((0.2, -0.35, 0.3), [0.12, -0.09, 0.43]),
+    ((-0.25, -0.3, -0.2), [-0.12, 0.09, 0.44]),
+    ((0.1, 0.4, 0.05), [0.0, -0.1, 0.40]),
+    ((-0.4, 0.1, 0.15), [0.0, 0.1, 0.45]),
+    ((0.3, 0.3, -0.3), [-0.14, 0.0, 0.46]),
+    ((-0.2, -0.4, 0.25), [0.14, 0.0, 0.46]),
+    ((0.15, 0.15, 1.2), [0.05, 0.02, 0.38]),
+    ((-0.1, 0.3, -1.0), [-0.05, -0.02, 0.39]),
+    ((0.45, -0.1, 0.0), [0.02, 0.05, 0.50]),
+    ((0.2, -0.2, 0.1), [-0.17, -0.12, 0.47]),
+    ((-0.2, -0.2, -0.1), [0.17, -0.12, 0.47]),
+    ((0.2, 0.2, -0.1), [0.17, 0.12, 0.47]),
+    ((-0.2, 0.2, 0.1), [-0.17, 0.12, 0.47]),
+];
+
+/// The demonstration lens (`calib synth`, the tests): 800x600 px, clear barrel distortion,
+/// an off-centre principal point.
+pub const DEMO_LENS: Lens = Lens {
+    width: 800,
+    height: 600,
+    camera_matrix: [700.0, 0.0, 402.3, 0.0, 705.0, 297.8, 0.0, 0.0, 1.0],
+    distortion: [-0.28, 0.09, 0.0008, -0.0006, 0.0],
+};
+
+/// The demonstration board: 8x5 inner corners, 25 mm squares.
+pub const DEMO_BOARD: Checkerboard = Checkerboard {
+    cols: 8,
+    rows: 5,
+    square_m: 0.025,
+};

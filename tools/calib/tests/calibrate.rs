@@ -6,7 +6,10 @@ use std::path::{Path, PathBuf};
 use fieldmaps::rigfile::{CameraCalibration, Rig};
 use millinav_calib::registration::raw_pixel_to_world_mm;
 use millinav_calib::rigwrite::{self, Update};
-use millinav_calib::synthetic::{board_shade, project, render_plane, Lens, Pose};
+use millinav_calib::synthetic::{
+    board_pose, board_shade, project, render_plane, top_camera_pose, Lens, Pose, CALIBRATION_POSES,
+    DEMO_BOARD, DEMO_LENS,
+};
 use millinav_calib::{
     calibrate_intrinsics, rectification_maps, rectify, register, CalibError, Checkerboard, Fiducial,
 };
@@ -15,71 +18,26 @@ use opencv::prelude::*;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
-/// A lens with clear barrel distortion and an off-centre principal point.
 fn true_lens() -> Lens {
-    Lens {
-        width: 800,
-        height: 600,
-        camera_matrix: [700.0, 0.0, 402.3, 0.0, 705.0, 297.8, 0.0, 0.0, 1.0],
-        distortion: [-0.28, 0.09, 0.0008, -0.0006, 0.0],
-    }
+    DEMO_LENS
 }
 
 fn board() -> Checkerboard {
-    Checkerboard {
-        cols: 8,
-        rows: 5,
-        square_m: 0.025,
-    }
-}
-
-/// The board tilted by (rx, ry, rz) rad with its centre at `centre` (m) in the camera frame.
-fn board_pose(rx: f64, ry: f64, rz: f64, centre: [f64; 3]) -> Pose {
-    let b = board();
-    let r = nalgebra::Rotation3::from_euler_angles(rx, ry, rz);
-    let c = nalgebra::Vector3::new(
-        f64::from(b.cols - 1) * b.square_m / 2.0,
-        f64::from(b.rows - 1) * b.square_m / 2.0,
-        0.0,
-    );
-    let t = nalgebra::Vector3::from_row_slice(&centre) - r * c;
-    let axis = r.scaled_axis();
-    Pose {
-        rvec: [axis.x, axis.y, axis.z],
-        tvec: [t.x, t.y, t.z],
-    }
+    DEMO_BOARD
 }
 
 fn views(count: usize) -> Vec<(PathBuf, Mat)> {
     let lens = true_lens();
     let b = board();
-    let poses = [
-        (0.0, 0.0, 0.0, [0.0, 0.0, 0.45]),
-        (0.35, 0.0, 0.1, [-0.12, -0.08, 0.42]),
-        (-0.3, 0.2, -0.1, [0.12, 0.08, 0.45]),
-        (0.2, -0.35, 0.3, [0.12, -0.09, 0.43]),
-        (-0.25, -0.3, -0.2, [-0.12, 0.09, 0.44]),
-        (0.1, 0.4, 0.05, [0.0, -0.1, 0.40]),
-        (-0.4, 0.1, 0.15, [0.0, 0.1, 0.45]),
-        (0.3, 0.3, -0.3, [-0.14, 0.0, 0.46]),
-        (-0.2, -0.4, 0.25, [0.14, 0.0, 0.46]),
-        (0.15, 0.15, 1.2, [0.05, 0.02, 0.38]),
-        (-0.1, 0.3, -1.0, [-0.05, -0.02, 0.39]),
-        (0.45, -0.1, 0.0, [0.02, 0.05, 0.50]),
-        // The board in each corner of the image, where the distortion is strongest.
-        (0.2, -0.2, 0.1, [-0.17, -0.12, 0.47]),
-        (-0.2, -0.2, -0.1, [0.17, -0.12, 0.47]),
-        (0.2, 0.2, -0.1, [0.17, 0.12, 0.47]),
-        (-0.2, 0.2, 0.1, [-0.17, 0.12, 0.47]),
-    ];
+    let poses = CALIBRATION_POSES;
     poses
         .iter()
         .take(count)
         .enumerate()
-        .map(|(k, &(rx, ry, rz, centre))| {
+        .map(|(k, &(tilt, centre))| {
             let image = render_plane(
                 &lens,
-                &board_pose(rx, ry, rz, centre),
+                &board_pose(&b, tilt, centre),
                 2,
                 2.0,
                 k as u64,
@@ -110,7 +68,7 @@ fn held_out_rms_px(estimate: &CameraCalibration) -> f64 {
     {
         let image = render_plane(
             &lens,
-            &board_pose(rx, ry, rz, centre),
+            &board_pose(&b, (rx, ry, rz), centre),
             2,
             2.0,
             100 + seed as u64,
@@ -137,23 +95,9 @@ fn held_out_rms_px(estimate: &CameraCalibration) -> f64 {
     (sum / count).sqrt()
 }
 
-/// The top camera over the phantom: 0.35 m up, tilted a few degrees, looking down at z = 0
-/// (world x right, y up, m).
+/// The top camera over the phantom: 0.35 m up, tilted a few degrees.
 fn top_pose() -> Pose {
-    // Looking down: camera z along world −z, camera x along world x, camera y along world −y;
-    // then tilted.
-    let down = nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(
-        1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0,
-    ));
-    let tilt = nalgebra::Rotation3::from_euler_angles(0.14, -0.09, 0.05);
-    let r = tilt * down;
-    let camera_centre = nalgebra::Vector3::new(0.01, -0.015, 0.35);
-    let t = -(r * camera_centre);
-    let axis = r.scaled_axis();
-    Pose {
-        rvec: [axis.x, axis.y, axis.z],
-        tvec: [t.x, t.y, t.z],
-    }
+    top_camera_pose([0.01, -0.015, 0.35], (0.14, -0.09, 0.05))
 }
 
 fn fiducials(lens: &Lens, pose: &Pose, world_mm: &[(f64, f64)], noise_px: f64) -> Vec<Fiducial> {
