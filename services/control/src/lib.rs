@@ -386,6 +386,18 @@ impl ControlLoop {
         self.allocate_with_field(position, heading, self.field_heading_rad, force, slew)
     }
 
+    /// The field model's effective currents of real coil currents (allocation order): a
+    /// saturating coil makes less field than its current.
+    fn effective_currents(&self, currents: &DVector<f64>) -> DVector<f64> {
+        DVector::from_iterator(
+            currents.len(),
+            currents
+                .iter()
+                .zip(&self.saturation)
+                .map(|(&i, curve)| curve.as_ref().map_or(i, |c| c.effective(i))),
+        )
+    }
+
     /// [`Self::allocate`] with the orientation field at `field_heading` (rad), the magnet at
     /// `heading`.
     fn allocate_with_field(
@@ -429,13 +441,7 @@ impl ControlLoop {
         let allocated = if let Some((previous, max_step_a)) = &previous {
             // Under a slew limit the allocation itself stays within reach of the previous
             // currents, so the coils that can follow make up for those that cannot.
-            let previous_effective = DVector::from_iterator(
-                previous.len(),
-                previous
-                    .iter()
-                    .zip(&self.saturation)
-                    .map(|(&i, curve)| curve.as_ref().map_or(i, |c| c.effective(i))),
-            );
+            let previous_effective = self.effective_currents(previous);
             allocate_constrained_slewed(
                 &a,
                 &c,
@@ -471,13 +477,7 @@ impl ControlLoop {
             }
             // Guard: the real currents within the real ratings whatever the curve did.
             clamp_to_ratings(&mut allocated, &self.ratings);
-            let effective = DVector::from_iterator(
-                allocated.len(),
-                allocated
-                    .iter()
-                    .zip(&self.saturation)
-                    .map(|(&i, curve)| curve.as_ref().map_or(i, |c| c.effective(i))),
-            );
+            let effective = self.effective_currents(&allocated);
             let wrench = &a * &effective;
             achieved = Vector2::new(wrench[0], wrench[1]);
             for (k, &id) in coil_ids.iter().enumerate() {

@@ -99,7 +99,8 @@ pub struct Scenario {
     pub path: PathBuf,
 }
 
-const KNOWN_SECTIONS: [&str; 6] = [
+/// The services' own tables of a scenario (besides run, fluid and trajectory).
+pub const KNOWN_SECTIONS: [&str; 6] = [
     "plant",
     "vision",
     "flow",

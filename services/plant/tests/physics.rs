@@ -11,6 +11,22 @@ use nalgebra::Vector2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+/// `config` without the recirculation vortex and the flow noise: the true flow is the steady
+/// map times the pulsation.
+fn steady_only(config: PlantPhysicsConfig) -> PlantPhysicsConfig {
+    PlantPhysicsConfig {
+        recirculation: millinav_plant::trueflow::RecirculationConfig {
+            strength_fraction: 0.0,
+            ..Default::default()
+        },
+        flow_noise: millinav_plant::trueflow::FlowNoiseConfig {
+            fraction: 0.0,
+            ..Default::default()
+        },
+        ..config
+    }
+}
+
 fn linear_only() -> PlantPhysicsConfig {
     PlantPhysicsConfig {
         form_drag_coefficient: 0.0,
@@ -83,15 +99,7 @@ fn on_the_floor_the_flow_pushes_with_its_own_factor() {
         floor_gap_m: Some(gap),
         floor_flow_factor: Some(1.7),
         pulsation_amplitude: 0.0,
-        recirculation: millinav_plant::trueflow::RecirculationConfig {
-            strength_fraction: 0.0,
-            ..Default::default()
-        },
-        flow_noise: millinav_plant::trueflow::FlowNoiseConfig {
-            fraction: 0.0,
-            ..Default::default()
-        },
-        ..linear_only()
+        ..steady_only(linear_only())
     };
     let m = model(uniform, config, 3);
     let factor = fieldmaps::physics::wall_drag_factor_parallel(gap, m.robot.diameter_m / 2.0);
@@ -279,18 +287,7 @@ fn same_seed_same_commands_give_bit_identical_states() {
 
 #[test]
 fn true_flow_is_steady_times_pulsation_plus_disturbances() {
-    let steady_only = PlantPhysicsConfig {
-        recirculation: millinav_plant::trueflow::RecirculationConfig {
-            strength_fraction: 0.0,
-            ..Default::default()
-        },
-        flow_noise: millinav_plant::trueflow::FlowNoiseConfig {
-            fraction: 0.0,
-            ..Default::default()
-        },
-        ..Default::default()
-    };
-    let plain = model(swirl_map(), steady_only, 5);
+    let plain = model(swirl_map(), steady_only(PlantPhysicsConfig::default()), 5);
     let full = model(swirl_map(), PlantPhysicsConfig::default(), 5);
     let p = Vector2::new(-0.012, 0.003); // in the recirculation band
     let q = Vector2::new(0.0, -0.020); // below it

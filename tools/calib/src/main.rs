@@ -304,8 +304,8 @@ fn check(rig_path: &Path, frame_path: &Path, out: &Path) -> anyhow::Result<()> {
 
 fn synth(rig_path: &Path, out: &Path) -> anyhow::Result<()> {
     use millinav_calib::synthetic::{
-        board_pose, board_shade, project, render_plane, top_camera_pose, CALIBRATION_POSES,
-        DEMO_BOARD, DEMO_LENS,
+        calibration_view, project, render_plane, top_camera_pose, CALIBRATION_POSES, DEMO_BOARD,
+        DEMO_LENS,
     };
     let rig = Rig::load(rig_path)?;
     let views = out.join("views");
@@ -313,15 +313,8 @@ fn synth(rig_path: &Path, out: &Path) -> anyhow::Result<()> {
         .with_context(|| format!("cannot create {}", views.display()))?;
     let bar =
         indicatif::ProgressBar::new(CALIBRATION_POSES.len() as u64 + 1).with_message("rendering");
-    for (k, &(tilt, centre)) in CALIBRATION_POSES.iter().enumerate() {
-        let image = render_plane(
-            &DEMO_LENS,
-            &board_pose(&DEMO_BOARD, tilt, centre),
-            2,
-            2.0,
-            k as u64,
-            board_shade(&DEMO_BOARD),
-        )?;
+    for k in 0..CALIBRATION_POSES.len() {
+        let image = calibration_view(&DEMO_LENS, &DEMO_BOARD, k)?;
         let path = views.join(format!("view{k:02}.png"));
         anyhow::ensure!(
             imgcodecs::imwrite_def(&path, &image)?,

@@ -240,3 +240,17 @@ pub const DEMO_BOARD: Checkerboard = Checkerboard {
     rows: 5,
     square_m: 0.025,
 };
+
+/// View `k` of [`CALIBRATION_POSES`] of `board` through `lens` (2x2 supersampled, 2 grey levels
+/// of noise seeded by `k`).
+pub fn calibration_view(lens: &Lens, board: &Checkerboard, k: usize) -> Result<Mat, CalibError> {
+    let (tilt, centre) = CALIBRATION_POSES[k % CALIBRATION_POSES.len()];
+    render_plane(
+        lens,
+        &board_pose(board, tilt, centre),
+        2,
+        2.0,
+        k as u64,
+        board_shade(board),
+    )
+}

@@ -7,7 +7,7 @@ use fieldmaps::rigfile::{CameraCalibration, Rig};
 use millinav_calib::registration::raw_pixel_to_world_mm;
 use millinav_calib::rigwrite::{self, Update};
 use millinav_calib::synthetic::{
-    board_pose, board_shade, project, render_plane, top_camera_pose, Lens, Pose, CALIBRATION_POSES,
+    board_pose, board_shade, calibration_view, project, render_plane, top_camera_pose, Lens, Pose,
     DEMO_BOARD, DEMO_LENS,
 };
 use millinav_calib::{
@@ -27,23 +27,9 @@ fn board() -> Checkerboard {
 }
 
 fn views(count: usize) -> Vec<(PathBuf, Mat)> {
-    let lens = true_lens();
-    let b = board();
-    let poses = CALIBRATION_POSES;
-    poses
-        .iter()
-        .take(count)
-        .enumerate()
-        .map(|(k, &(tilt, centre))| {
-            let image = render_plane(
-                &lens,
-                &board_pose(&b, tilt, centre),
-                2,
-                2.0,
-                k as u64,
-                board_shade(&b),
-            )
-            .unwrap();
+    (0..count)
+        .map(|k| {
+            let image = calibration_view(&true_lens(), &board(), k).unwrap();
             (PathBuf::from(format!("view{k:02}.png")), image)
         })
         .collect()
@@ -192,15 +178,7 @@ fn rectification_puts_the_world_where_the_canonical_view_expects_it() {
     };
     let raw = render_plane(&lens, &pose, 3, 0.0, 1, disc).unwrap();
     let world: Vec<(f64, f64)> = vec![(-40.0, -40.0), (40.0, -40.0), (40.0, 40.0), (-40.0, 40.0)];
-    let mut calibration = CameraCalibration {
-        image_width: lens.width,
-        image_height: lens.height,
-        camera_matrix: lens.camera_matrix,
-        distortion_coefficients: lens.distortion,
-        reprojection_error_px: None,
-        image_to_world_mm: None,
-        registration_residual_mm: None,
-    };
+    let mut calibration = intrinsics_of_truth();
     calibration.image_to_world_mm = Some(
         register(&calibration, &fiducials(&lens, &pose, &world, 0.0))
             .unwrap()
