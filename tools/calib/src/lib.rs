@@ -111,11 +111,7 @@ pub fn find_corners(
     if !found {
         return Ok(None);
     }
-    let criteria = TermCriteria::new(
-        core::TermCriteria_Type::COUNT as i32 | core::TermCriteria_Type::EPS as i32,
-        50,
-        1e-3,
-    )?;
+    let criteria = criteria(50, 1e-3)?;
     imgproc::corner_sub_pix(
         gray,
         &mut corners,
@@ -143,12 +139,6 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
-    pub fn camera_matrix_mat(&self) -> Result<Mat, CalibError> {
-        Ok(Mat::new_rows_cols_with_data(3, 3, &self.camera_matrix)?.try_clone()?)
-    }
-    pub fn distortion_mat(&self) -> Result<Mat, CalibError> {
-        Ok(Mat::new_rows_cols_with_data(1, 5, &self.distortion)?.try_clone()?)
-    }
     /// As the rig file's calibration (no registration yet).
     pub fn to_calibration(&self) -> CameraCalibration {
         CameraCalibration {
@@ -221,11 +211,7 @@ pub fn calibrate_intrinsics(
     let mut d = Mat::default();
     let mut rvecs = Vector::<Mat>::new();
     let mut tvecs = Vector::<Mat>::new();
-    let criteria = TermCriteria::new(
-        core::TermCriteria_Type::COUNT as i32 | core::TermCriteria_Type::EPS as i32,
-        100,
-        f64::EPSILON,
-    )?;
+    let criteria = criteria(100, f64::EPSILON)?;
     let rms_px = calib3d::calibrate_camera(
         &object_points,
         &image_points,
@@ -302,6 +288,15 @@ pub fn lens_mats(calibration: &CameraCalibration) -> Result<(Mat, Mat), CalibErr
     Ok((k, d))
 }
 
+/// OpenCV's stop rule: `max_count` iterations or a step below `eps`.
+pub(crate) fn criteria(max_count: i32, eps: f64) -> Result<TermCriteria, CalibError> {
+    Ok(TermCriteria::new(
+        core::TermCriteria_Type::COUNT as i32 | core::TermCriteria_Type::EPS as i32,
+        max_count,
+        eps,
+    )?)
+}
+
 /// Undistorted pixel coordinates (the pinhole image the homography speaks) of raw pixels.
 pub fn undistort_pixels(
     calibration: &CameraCalibration,
@@ -313,11 +308,7 @@ pub fn undistort_pixels(
         .map(|&(u, v)| Point2f::new(u as f32, v as f32))
         .collect();
     let mut dst = Vector::<Point2f>::new();
-    let criteria = TermCriteria::new(
-        core::TermCriteria_Type::COUNT as i32 | core::TermCriteria_Type::EPS as i32,
-        50,
-        1e-9,
-    )?;
+    let criteria = criteria(50, 1e-9)?;
     calib3d::undistort_points_iter(&src, &mut dst, &k, &d, &core::no_array(), &k, criteria)?;
     Ok(dst
         .iter()

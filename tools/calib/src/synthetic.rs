@@ -2,10 +2,12 @@
 //! OpenCV's plumb_bob distortion at a given pose. The calibration tests render views of a known
 //! lens with it, and the twin can show vision a camera that is not square to the phantom.
 
-use opencv::core::{self, Mat, Point2f, Point3f, TermCriteria, Vector};
+use opencv::core::{self, Mat, Point2f, Point3f, Vector};
 use opencv::prelude::*;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
+
+use fieldmaps::rigfile::CameraCalibration;
 
 use crate::{CalibError, Checkerboard};
 
@@ -42,11 +44,23 @@ impl Pose {
     }
 }
 
+impl Lens {
+    /// The lens as a rig calibration (no registration).
+    pub fn calibration(&self) -> CameraCalibration {
+        CameraCalibration {
+            image_width: self.width,
+            image_height: self.height,
+            camera_matrix: self.camera_matrix,
+            distortion_coefficients: self.distortion,
+            reprojection_error_px: None,
+            image_to_world_mm: None,
+            registration_residual_mm: None,
+        }
+    }
+}
+
 fn lens_mats(lens: &Lens) -> Result<(Mat, Mat), CalibError> {
-    Ok((
-        Mat::new_rows_cols_with_data(3, 3, &lens.camera_matrix)?.try_clone()?,
-        Mat::new_rows_cols_with_data(1, 5, &lens.distortion)?.try_clone()?,
-    ))
+    crate::lens_mats(&lens.calibration())
 }
 
 /// Raw pixel positions of world points (m) seen through `lens` at `pose`.
@@ -99,11 +113,7 @@ pub fn render_plane(
     }
     // Normalized pinhole coordinates of each sample (the lens undone).
     let mut normalized = Vector::<Point2f>::new();
-    let criteria = TermCriteria::new(
-        core::TermCriteria_Type::COUNT as i32 | core::TermCriteria_Type::EPS as i32,
-        30,
-        1e-7,
-    )?;
+    let criteria = crate::criteria(30, 1e-7)?;
     opencv::calib3d::undistort_points_iter(
         &samples,
         &mut normalized,

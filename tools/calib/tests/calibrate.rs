@@ -283,16 +283,7 @@ fn bad_input_is_refused_with_a_reason() {
 }
 
 fn intrinsics_of_truth() -> CameraCalibration {
-    let lens = true_lens();
-    CameraCalibration {
-        image_width: lens.width,
-        image_height: lens.height,
-        camera_matrix: lens.camera_matrix,
-        distortion_coefficients: lens.distortion,
-        reprojection_error_px: None,
-        image_to_world_mm: None,
-        registration_residual_mm: None,
-    }
+    true_lens().calibration()
 }
 
 /// A copy of the paper's rig file beside it (its relative paths must keep resolving), removed
