@@ -33,6 +33,53 @@ pub const MAGNET_RGB: [u8; 3] = [25, 25, 30];
 const CANAL_RGB: [f64; 3] = [228.0, 226.0, 214.0];
 const WALL_RGB: [f64; 3] = [196.0, 168.0, 160.0];
 
+/// Colours and shading of the rendered scene. The default is the twin's look; dataset
+/// generation varies it (domain randomization) so a model does not learn one palette.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Palette {
+    pub canal_rgb: [f64; 3],
+    pub wall_rgb: [f64; 3],
+    pub body_rgb: [u8; 3],
+    pub cap_rgb: [u8; 3],
+    pub magnet_rgb: [u8; 3],
+    /// Darkening toward the capsule's rim, a lit cylinder seen from above: the colour is
+    /// scaled by 1 − rim_shading·(d/r)², d the distance from the axis (0 = flat).
+    pub rim_shading: f64,
+    /// Grey levels a specular stripe along the capsule adds at its peak (0 = none).
+    pub specular: f64,
+    /// Where the stripe runs, across the axis as a fraction of the radius (light direction).
+    pub specular_offset: f64,
+}
+
+impl Palette {
+    /// The shading of a capsule pixel at `rim` (distance from the axis / radius) and signed
+    /// `across` (same units): maps a base colour value to the lit one. Flat without shading.
+    fn lit(&self, rim: f64, across: f64) -> impl Fn(u8) -> f64 {
+        let scale = 1.0 - self.rim_shading * rim.min(1.0).powi(2);
+        let stripe = if self.specular == 0.0 {
+            0.0
+        } else {
+            self.specular * (-((across - self.specular_offset) / 0.25).powi(2)).exp()
+        };
+        move |value| f64::from(value) * scale + stripe
+    }
+}
+
+impl Default for Palette {
+    fn default() -> Self {
+        Self {
+            canal_rgb: CANAL_RGB,
+            wall_rgb: WALL_RGB,
+            body_rgb: BODY_RGB,
+            cap_rgb: CAP_RGB,
+            magnet_rgb: MAGNET_RGB,
+            rim_shading: 0.0,
+            specular: 0.0,
+            specular_offset: 0.0,
+        }
+    }
+}
+
 /// Number of pre-rendered background variants cycled through for temporal noise.
 const BACKGROUND_VARIANTS: usize = 4;
 
@@ -123,6 +170,9 @@ pub struct Camera {
     blurred: Vec<Vec<u8>>,
     pub noise_std: f64,
     pub config: CameraConfig,
+    /// Scene colours; the capsule's may be changed between draws (the background's are
+    /// baked in at construction, see [`Camera::with_palette`]).
+    pub palette: Palette,
     drift_phases: (f64, f64),
 }
 
@@ -134,7 +184,32 @@ impl Camera {
         rng: &mut ChaCha8Rng,
         noise_std: f64,
     ) -> Self {
-        Self::build(canal, geometry, rng, noise_std, CameraConfig::off())
+        Self::build(
+            canal,
+            geometry,
+            rng,
+            noise_std,
+            CameraConfig::off(),
+            Palette::default(),
+        )
+    }
+
+    /// Like [`Camera::new`] with the scene in `palette`'s colours.
+    pub fn with_palette(
+        canal: &CanalMask,
+        geometry: ImageGeometry,
+        rng: &mut ChaCha8Rng,
+        noise_std: f64,
+        palette: Palette,
+    ) -> Self {
+        Self::build(
+            canal,
+            geometry,
+            rng,
+            noise_std,
+            CameraConfig::off(),
+            palette,
+        )
     }
 
     /// A camera with the effects of `config` (blur, lighting drift); draws from `rng` after
@@ -146,7 +221,7 @@ impl Camera {
         noise_std: f64,
         config: CameraConfig,
     ) -> Self {
-        let mut camera = Self::build(canal, geometry, rng, noise_std, config);
+        let mut camera = Self::build(canal, geometry, rng, noise_std, config, Palette::default());
         camera.drift_phases = (
             rng.random_range(0.0..std::f64::consts::TAU),
             rng.random_range(0.0..std::f64::consts::TAU),
@@ -173,6 +248,7 @@ impl Camera {
         rng: &mut ChaCha8Rng,
         noise_std: f64,
         config: CameraConfig,
+        palette: Palette,
     ) -> Self {
         let canal_mask = canal.resampled(&geometry);
         let (w, h) = (geometry.width_px as usize, geometry.height_px as usize);
@@ -203,9 +279,9 @@ impl Camera {
                 let mut img = vec![0u8; w * h * 3];
                 for (i, px) in img.chunks_mut(3).enumerate() {
                     let base = if canal_mask[i] > 0 {
-                        CANAL_RGB
+                        palette.canal_rgb
                     } else {
-                        WALL_RGB
+                        palette.wall_rgb
                     };
                     let n = texture[i] + noise_std * gaussian(rng);
                     for (c, b) in px.iter_mut().zip(base) {
@@ -222,6 +298,7 @@ impl Camera {
             blurred: Vec::new(),
             noise_std,
             config,
+            palette,
             drift_phases: (0.0, 0.0),
         }
     }
@@ -461,14 +538,15 @@ impl Camera {
                 if coverage <= 0.0 {
                     continue;
                 }
+                let palette = &self.palette;
                 let (color, class) = if (along - magnet_center).abs() <= magnet_half
                     && across.abs() <= magnet_half
                 {
-                    (MAGNET_RGB, MASK_MAGNET)
+                    (palette.magnet_rgb, MASK_MAGNET)
                 } else if along >= cap_start {
-                    (CAP_RGB, MASK_CAP)
+                    (palette.cap_rgb, MASK_CAP)
                 } else {
-                    (BODY_RGB, MASK_BODY)
+                    (palette.body_rgb, MASK_BODY)
                 };
                 if let Some(mask) = mask.as_deref_mut() {
                     if dist <= radius_px {
@@ -478,10 +556,11 @@ impl Camera {
                     }
                 }
                 let noise = self.noise_std * gaussian(rng);
+                let lit = palette.lit(dist / radius_px.max(1e-9), across / radius_px.max(1e-9));
                 let i = (((row - rr0) * region.width as i64 + (col - rc0)) * 3) as usize;
                 for c in 0..3 {
                     let bg = buf[i + c] as f64;
-                    let value = bg + coverage * (color[c] as f64 + noise - bg);
+                    let value = bg + coverage * (lit(color[c]) + noise - bg);
                     buf[i + c] = value.round().clamp(0.0, 255.0) as u8;
                 }
             }
