@@ -367,3 +367,81 @@ pub fn label_files(dir: &Path) -> Result<Vec<PathBuf>, LabelError> {
     }
     Ok(files)
 }
+
+impl Capsule {
+    /// The outline a labeller clicks around a capsule seen from above: 13 points around each
+    /// end cap (pixel-edge convention: the pixel centre (c, r) covers c − 0.5 … c + 0.5).
+    /// `axis` is the unit tail → tip direction in image pixels.
+    pub fn clicked(
+        tip_px: (f64, f64),
+        tail_px: (f64, f64),
+        axis: (f64, f64),
+        radius_px: f64,
+    ) -> Capsule {
+        let centre = ((tip_px.0 + tail_px.0) / 2.0, (tip_px.1 + tail_px.1) / 2.0);
+        let half = ((tip_px.0 - tail_px.0).hypot(tip_px.1 - tail_px.1) / 2.0 - radius_px).max(0.0);
+        let (ax, ay) = axis;
+        let mut outline_px = Vec::new();
+        for (end, start_angle) in [(1.0, -90.0f64), (-1.0, 90.0)] {
+            let c = (centre.0 + end * half * ax, centre.1 + end * half * ay);
+            for k in 0..=12 {
+                let (sa, ca) = (start_angle + 15.0 * k as f64).to_radians().sin_cos();
+                let dir = (ax * ca - ay * sa, ax * sa + ay * ca);
+                outline_px.push((c.0 + radius_px * dir.0 + 0.5, c.1 + radius_px * dir.1 + 0.5));
+            }
+        }
+        Capsule {
+            outline_px,
+            tip_px,
+            tail_px,
+        }
+    }
+}
+
+/// Writes one frame as `<name>.png` + `<name>.json` (LabelMe) into `dir`, labelled with the
+/// default names: what a labelled frame of your camera looks like.
+pub fn write_frame(
+    dir: &Path,
+    name: &str,
+    rgb: &[u8],
+    width: usize,
+    height: usize,
+    capsule: Option<&Capsule>,
+) -> Result<(), LabelError> {
+    let names = LabelNames::default();
+    let png = dir.join(format!("{name}.png"));
+    let image = Mat::from_slice(rgb)
+        .and_then(|m| m.reshape(3, height as i32)?.try_clone())
+        .map_err(|e| err(&png, e.to_string()))?;
+    let mut bgr = Mat::default();
+    imgproc::cvt_color_def(&image, &mut bgr, imgproc::COLOR_RGB2BGR)
+        .map_err(|e| err(&png, e.to_string()))?;
+    let written =
+        imgcodecs::imwrite(&png, &bgr, &Vector::new()).map_err(|e| err(&png, e.to_string()))?;
+    if !written {
+        return Err(err(&png, "cannot write the image"));
+    }
+    let point = |label: &str, p: (f64, f64)| serde_json::json!({"label": label, "shape_type": "point", "points": [[p.0, p.1]], "flags": {}});
+    let shapes: Vec<serde_json::Value> = capsule
+        .map(|c| {
+            let outline: Vec<[f64; 2]> = c.outline_px.iter().map(|&(x, y)| [x, y]).collect();
+            vec![
+                serde_json::json!({"label": names.body, "shape_type": "polygon", "points": outline, "flags": {}}),
+                point(&names.tip, c.tip_px),
+                point(&names.tail, c.tail_px),
+            ]
+        })
+        .unwrap_or_default();
+    let json = serde_json::json!({
+        "version": "5.4.1",
+        "flags": {},
+        "shapes": shapes,
+        "imagePath": format!("{name}.png"),
+        "imageData": null,
+        "imageHeight": height,
+        "imageWidth": width,
+    });
+    let path = dir.join(format!("{name}.json"));
+    let text = serde_json::to_string_pretty(&json).map_err(|e| err(&path, e.to_string()))?;
+    std::fs::write(&path, text).map_err(|e| err(&path, format!("cannot write: {e}")))
+}

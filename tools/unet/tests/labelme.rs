@@ -10,10 +10,8 @@ use fieldmaps::rigfile::Rig;
 use millinav_plant::render::Camera;
 use millinav_roi::dataset::Split;
 use millinav_roi::roi::{Crop, INPUT_PX};
+use millinav_unet::labelme::{write_frame, Capsule};
 use nalgebra::Vector2;
-use opencv::core::{Mat, Vector};
-use opencv::prelude::*;
-use opencv::{imgcodecs, imgproc};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -49,30 +47,6 @@ impl Truth {
         let c = along.clamp(-self.core_half_px, self.core_half_px);
         (along - c).powi(2) + across.powi(2) <= self.radius_px.powi(2)
     }
-
-    /// The outline a labeller clicks: 12 points around each end cap.
-    fn polygon(&self) -> Vec<[f64; 2]> {
-        let (ax, ay) = self.axis;
-        let mut pts = Vec::new();
-        for (end, start_angle) in [(1.0, -90.0f64), (-1.0, 90.0)] {
-            let c = (
-                self.centre.0 + end * self.core_half_px * ax,
-                self.centre.1 + end * self.core_half_px * ay,
-            );
-            for k in 0..=12 {
-                let a = (start_angle + 15.0 * k as f64).to_radians();
-                // Angle measured from the axis direction.
-                let (ca, sa) = (a.cos(), a.sin());
-                let dir = (ax * ca - ay * sa, ax * sa + ay * ca);
-                // Pixel-edge convention: a pixel centre (c, r) covers c-0.5..c+0.5.
-                pts.push([
-                    c.0 + self.radius_px * dir.0 + 0.5,
-                    c.1 + self.radius_px * dir.1 + 0.5,
-                ]);
-            }
-        }
-        pts
-    }
 }
 
 /// Renders the labelled set into `dir`: one PNG + LabelMe JSON per frame; the last frame empty.
@@ -85,7 +59,6 @@ fn make_set(rig: &Rig, dir: &Path) -> Vec<Option<Truth>> {
     let mut truths = Vec::new();
     for (k, pose) in POSES.iter().map(Some).chain([None]).enumerate() {
         let mut rgb = cam.background(k as u64).to_vec();
-        let mut shapes = Vec::new();
         let truth = pose.map(|&(x, y, heading)| {
             let p = Vector2::new(x, y);
             cam.draw_capsule(
@@ -107,35 +80,10 @@ fn make_set(rig: &Rig, dir: &Path) -> Vec<Option<Truth>> {
                 core_half_px: (rig.robot.length_m / 2.0 - rig.robot.radius_m()) * px_per_m,
             }
         });
-        if let Some(t) = &truth {
-            shapes.push(serde_json::json!({"label": "capsule", "shape_type": "polygon", "points": t.polygon(), "group_id": null, "flags": {}}));
-            shapes.push(serde_json::json!({"label": "tip", "shape_type": "point", "points": [[t.tip.0, t.tip.1]]}));
-            shapes.push(serde_json::json!({"label": "tail", "shape_type": "point", "points": [[t.tail.0, t.tail.1]]}));
-        }
-        let name = format!("frame_{k:03}");
-        let rgb_mat = Mat::from_slice(&rgb)
-            .unwrap()
-            .reshape(3, h as i32)
-            .unwrap()
-            .try_clone()
-            .unwrap();
-        let mut bgr = Mat::default();
-        imgproc::cvt_color_def(&rgb_mat, &mut bgr, imgproc::COLOR_RGB2BGR).unwrap();
-        imgcodecs::imwrite(dir.join(format!("{name}.png")), &bgr, &Vector::new()).unwrap();
-        let json = serde_json::json!({
-            "version": "5.4.1",
-            "flags": {},
-            "shapes": shapes,
-            "imagePath": format!("{name}.png"),
-            "imageData": null,
-            "imageHeight": h,
-            "imageWidth": w,
-        });
-        std::fs::write(
-            dir.join(format!("{name}.json")),
-            serde_json::to_string_pretty(&json).unwrap(),
-        )
-        .unwrap();
+        let clicked = truth
+            .as_ref()
+            .map(|t| Capsule::clicked(t.tip, t.tail, t.axis, t.radius_px));
+        write_frame(dir, &format!("frame_{k:03}"), &rgb, w, h, clicked.as_ref()).unwrap();
         truths.push(truth);
     }
     truths

@@ -1,6 +1,12 @@
 //! `unet-dataset`: exports UNet training data from the twin's camera: ROI crops exactly as the
 //! vision service prepares them, with ground-truth masks and tip/centroid/tail keypoints, over
 //! varied pose, lighting, noise, blur and tracking offset. Splits use different seeds.
+//!
+//! `--style` sets the generator: `twin` renders the twin's own look; `randomized` varies the
+//! scene per camera and per crop (canal and wall colours, dye shade, rim shading, specular
+//! stripe, capsule scale ±12 %, air bubbles) so a model cannot learn one palette (train.py adds
+//! the camera's shifts on top); `heldout` is a setting used by no training split (a cool-lit
+//! palette, darker dye, strong rim shading and a fixed highlight), for an honest test split.
 
 use std::path::PathBuf;
 
@@ -10,9 +16,10 @@ use fieldmaps::phantom::ImageGeometry;
 use fieldmaps::rig::RobotParams;
 use fieldmaps::rigfile::Rig;
 use indicatif::{ProgressBar, ProgressStyle};
-use millinav_plant::render::Camera;
+use millinav_plant::render::{blur_rgb, Camera, Palette};
 use millinav_roi::dataset::{Label, Split};
 use millinav_roi::roi::{extract_mask, extract_rgb, Crop, CROP_PX};
+use millinav_unet::labelme::{write_frame, Capsule};
 use nalgebra::Vector2;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -39,11 +46,137 @@ struct Args {
     /// Rig file: camera, phantom and capsule (default: the paper's, fieldmaps/rigs/paper.toml).
     #[arg(long)]
     rig: Option<PathBuf>,
+    /// Generator setting: the twin's look, domain-randomized scenes, or the held-out setting.
+    #[arg(long, value_enum, default_value_t = Style::Twin)]
+    style: Style,
+    /// Instead of crop splits, write this many labelled full frames (PNG + LabelMe JSON, every
+    /// 8th one an empty canal) into --out: a stand-in for frames of your own camera that
+    /// `unet-import` reads (tools/unet/LABELS.md). Seed: --seed.
+    #[arg(long, value_name = "N")]
+    labelme_frames: Option<usize>,
+    /// Colour of the capsule's dyed body, "R,G,B" (e.g. another lab's dye); default the style's.
+    #[arg(long, value_name = "R,G,B", value_parser = parse_rgb)]
+    dye_rgb: Option<[u8; 3]>,
+}
+
+fn parse_rgb(text: &str) -> Result<[u8; 3], String> {
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    let values: Result<Vec<u8>, _> = parts.iter().map(|p| p.parse::<u8>()).collect();
+    match values {
+        Ok(v) if v.len() == 3 => Ok([v[0], v[1], v[2]]),
+        _ => Err(format!("{text:?}: want three values 0-255 as R,G,B")),
+    }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Style {
+    /// The twin's palette, as the plant renders it.
+    Twin,
+    /// Scene colours, shading, capsule scale and bubbles drawn at random.
+    Randomized,
+    /// One fixed setting that no training split uses.
+    Heldout,
+}
+
+impl Style {
+    /// Palette of a camera (the background colours are baked into it).
+    fn camera_palette(self, rng: &mut ChaCha8Rng) -> Palette {
+        let base = Palette::default();
+        match self {
+            Style::Twin => base,
+            Style::Randomized => {
+                let mut jitter = |rgb: [f64; 3], spread: f64| {
+                    let brightness = rng.random_range(0.72..1.08);
+                    rgb.map(|v| v * brightness + rng.random_range(-spread..spread))
+                };
+                Palette {
+                    canal_rgb: jitter(base.canal_rgb, 22.0),
+                    wall_rgb: jitter(base.wall_rgb, 30.0),
+                    ..base
+                }
+            }
+            Style::Heldout => Palette {
+                canal_rgb: [204.0, 214.0, 226.0],
+                wall_rgb: [172.0, 152.0, 170.0],
+                body_rgb: [28, 78, 172],
+                cap_rgb: [150, 186, 228],
+                magnet_rgb: [48, 42, 40],
+                rim_shading: 0.35,
+                specular: 70.0,
+                specular_offset: 0.4,
+            },
+        }
+    }
+
+    /// Per-crop capsule look (colours and shading) on top of the camera's palette.
+    fn capsule_palette(self, camera: Palette, rng: &mut ChaCha8Rng) -> Palette {
+        if self != Style::Randomized {
+            return camera;
+        }
+        let base = Palette::default();
+        let shade = |rgb: [u8; 3], scale: f64, spread: f64, rng: &mut ChaCha8Rng| {
+            rgb.map(|v| {
+                (f64::from(v) * scale + rng.random_range(-spread..=spread))
+                    .round()
+                    .clamp(0.0, 255.0) as u8
+            })
+        };
+        let dye = rng.random_range(0.7..1.2);
+        let specular = if rng.random_bool(0.5) {
+            rng.random_range(20.0..110.0)
+        } else {
+            0.0
+        };
+        let cap_scale = rng.random_range(0.8..1.1);
+        let magnet_lift = rng.random_range(0.0..30.0);
+        Palette {
+            body_rgb: shade(base.body_rgb, dye, 20.0, rng),
+            cap_rgb: shade(base.cap_rgb, cap_scale, 20.0, rng),
+            magnet_rgb: shade(base.magnet_rgb, 1.0, 0.0, rng).map(|v| v + magnet_lift as u8),
+            rim_shading: rng.random_range(0.0..0.45),
+            specular,
+            specular_offset: rng.random_range(-0.6..0.6),
+            ..camera
+        }
+    }
+
+    /// Capsule size factor of a crop (a camera a little higher or lower than calibrated).
+    fn scale(self, rng: &mut ChaCha8Rng) -> f64 {
+        match self {
+            Style::Twin => 1.0,
+            Style::Randomized => rng.random_range(0.88..1.12),
+            Style::Heldout => 0.95,
+        }
+    }
+
+    /// Probability that a crop shows air bubbles.
+    fn bubble_probability(self) -> f64 {
+        match self {
+            Style::Twin => 0.0,
+            Style::Randomized => 0.4,
+            Style::Heldout => 0.5,
+        }
+    }
+
+    /// Range of the sensor noise σ of a camera.
+    fn noise_range(self) -> std::ops::Range<f64> {
+        match self {
+            Style::Heldout => 3.0..10.0,
+            _ => 1.0..8.0,
+        }
+    }
 }
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let rig = Rig::load_or_paper(args.rig.as_deref())?;
+    if let Some(frames) = args.labelme_frames {
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("creating {}", args.out.display()))?;
+        export_labelme(&rig, frames, &args)?;
+        eprintln!("{frames} labelled frames in {}", args.out.display());
+        return Ok(());
+    }
     for (offset, (name, count)) in [
         ("train", args.train),
         ("val", args.val),
@@ -61,6 +194,8 @@ fn main() -> anyhow::Result<()> {
             args.seed + offset as u64,
             args.cameras.max(1),
             name,
+            args.style,
+            args.dye_rgb,
         )?;
         let dir = args.out.join(name);
         split
@@ -68,6 +203,68 @@ fn main() -> anyhow::Result<()> {
             .with_context(|| format!("writing {}", dir.display()))?;
         eprintln!("{name}: {} samples in {}", split.len(), dir.display());
     }
+    Ok(())
+}
+
+/// Full frames with LabelMe labels, as a person would label them (the capsule's outline, tip and
+/// tail points), in the style's look.
+fn export_labelme(rig: &Rig, frames: usize, args: &Args) -> anyhow::Result<()> {
+    let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
+    let geometry = rig.camera.geometry;
+    let (width, height) = (geometry.width_px as usize, geometry.height_px as usize);
+    let bar = ProgressBar::new(frames as u64).with_style(
+        ProgressStyle::with_template("frames [{bar:40}] {pos}/{len} {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let style = args.style;
+    let mut cams: Vec<Camera> = (0..args.cameras.max(1))
+        .map(|_| {
+            let noise = rng.random_range(style.noise_range());
+            let palette = style.camera_palette(&mut rng);
+            Camera::with_palette(&rig.phantom.mask, geometry, &mut rng, noise, palette)
+        })
+        .collect();
+    let camera_palettes: Vec<Palette> = cams.iter().map(|c| c.palette).collect();
+    let px_per_m = 1e3 / geometry.mm_per_px;
+    for k in 0..frames {
+        let which = rng.random_range(0..cams.len());
+        let cam = &mut cams[which];
+        cam.palette = style.capsule_palette(camera_palettes[which], &mut rng);
+        if let Some(dye) = args.dye_rgb {
+            cam.palette.body_rgb = dye;
+        }
+        let cam = &*cam;
+        let mut frame = cam.background(k as u64).to_vec();
+        let capsule = (k % 8 != 7).then(|| {
+            let mut robot = rig.robot;
+            let scale = style.scale(&mut rng);
+            robot.length_m *= scale;
+            robot.diameter_m *= scale;
+            let (position, heading) = random_pose(rig, &mut rng, &robot);
+            cam.draw_capsule(
+                &mut frame,
+                &position,
+                heading,
+                robot.length_m,
+                robot.diameter_m,
+                &mut rng,
+            );
+            let kp = cam.keypoints(&position, heading, robot.length_m);
+            let axis = (heading.cos(), -heading.sin());
+            Capsule::clicked(kp.tip_px, kp.tail_px, axis, robot.radius_m() * px_per_m)
+        });
+        blur_rgb(&mut frame, width, height, 1);
+        write_frame(
+            &args.out,
+            &format!("frame_{k:04}"),
+            &frame,
+            width,
+            height,
+            capsule.as_ref(),
+        )?;
+        bar.inc(1);
+    }
+    bar.finish();
     Ok(())
 }
 
@@ -165,26 +362,57 @@ fn blur_region(frame: &mut [u8], width: usize, height: usize, crop: &Crop, w: f3
     }
 }
 
+/// Air bubbles in the fluid around the crop centre: a bright thin rim and a faintly lighter
+/// inside. They sit on the canal floor beside the capsule, never over it (its mask stays true).
+fn draw_bubbles(frame: &mut [u8], capsule: &[u8], width: usize, crop: &Crop, rng: &mut ChaCha8Rng) {
+    for _ in 0..rng.random_range(1..5) {
+        let radius = rng.random_range(4.0..16.0);
+        let bc = crop.col0 as f64 + rng.random_range(0.0..CROP_PX as f64);
+        let br = crop.row0 as f64 + rng.random_range(0.0..CROP_PX as f64);
+        let (rim, inside) = (rng.random_range(50.0..120.0), rng.random_range(5.0..30.0));
+        for row in crop.row0..crop.row0 + CROP_PX {
+            for col in crop.col0..crop.col0 + CROP_PX {
+                let d = ((col as f64 - bc).powi(2) + (row as f64 - br).powi(2)).sqrt() / radius;
+                let lift = if (0.82..1.0).contains(&d) {
+                    rim
+                } else if d < 0.82 {
+                    inside
+                } else {
+                    continue;
+                };
+                if capsule[row * width + col] > 0 {
+                    continue;
+                }
+                for v in &mut frame[(row * width + col) * 3..][..3] {
+                    *v = (f64::from(*v) + lift).round().clamp(0.0, 255.0) as u8;
+                }
+            }
+        }
+    }
+}
+
 fn export_split(
     rig: &Rig,
     count: usize,
     seed: u64,
     cameras: usize,
     name: &str,
+    style: Style,
+    dye_rgb: Option<[u8; 3]>,
 ) -> anyhow::Result<Split> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let geometry = rig.camera.geometry;
     let (width, height) = (geometry.width_px as usize, geometry.height_px as usize);
-    let robot = rig.robot;
     let bar = ProgressBar::new((cameras + count) as u64).with_style(
         ProgressStyle::with_template("{msg:>6} [{bar:40}] {pos}/{len} {eta}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     bar.set_message(name.to_owned());
-    let cams: Vec<Camera> = (0..cameras)
+    let mut cams: Vec<Camera> = (0..cameras)
         .map(|_| {
-            let noise = rng.random_range(1.0..8.0);
-            let cam = Camera::new(&rig.phantom.mask, geometry, &mut rng, noise);
+            let noise = rng.random_range(style.noise_range());
+            let palette = style.camera_palette(&mut rng);
+            let cam = Camera::with_palette(&rig.phantom.mask, geometry, &mut rng, noise, palette);
             bar.inc(1);
             cam
         })
@@ -193,8 +421,19 @@ fn export_split(
     let mut frame = vec![0u8; width * height * 3];
     let mut mask = vec![0u8; width * height];
     let (mut image_out, mut mask_out) = (Vec::new(), Vec::new());
+    let camera_palettes: Vec<Palette> = cams.iter().map(|c| c.palette).collect();
     for _ in 0..count {
-        let cam = &cams[rng.random_range(0..cams.len())];
+        let which = rng.random_range(0..cams.len());
+        let cam = &mut cams[which];
+        cam.palette = style.capsule_palette(camera_palettes[which], &mut rng);
+        if let Some(dye) = dye_rgb {
+            cam.palette.body_rgb = dye;
+        }
+        let cam = &*cam;
+        let mut robot = rig.robot;
+        let scale = style.scale(&mut rng);
+        robot.length_m *= scale;
+        robot.diameter_m *= scale;
         let (position, heading) = random_pose(rig, &mut rng, &robot);
         frame.copy_from_slice(cam.background(rng.random_range(0..4)));
         cam.draw_capsule(
@@ -222,6 +461,14 @@ fn export_split(
             geometry.world_to_px(&elsewhere)
         };
         let crop = Crop::around(centre_col, centre_row, width, height).context("crop")?;
+        mask.iter_mut().for_each(|m| *m = 0);
+        if has_robot {
+            capsule_mask(&geometry, &position, heading, &robot, &crop, &mut mask);
+        }
+        // Twin style draws nothing here, so its splits stay as before.
+        if style.bubble_probability() > 0.0 && rng.random_bool(style.bubble_probability()) {
+            draw_bubbles(&mut frame, &mask, width, &crop, &mut rng);
+        }
         if rng.random_range(0.0..1.0) < 0.6 {
             let passes = rng.random_range(1..3);
             blur_region(
@@ -232,10 +479,6 @@ fn export_split(
                 rng.random_range(0.05..0.25),
                 passes,
             );
-        }
-        mask.iter_mut().for_each(|m| *m = 0);
-        if has_robot {
-            capsule_mask(&geometry, &position, heading, &robot, &crop, &mut mask);
         }
         extract_rgb(&frame, width, &crop, &mut image_out);
         extract_mask(&mask, width, &crop, &mut mask_out);
