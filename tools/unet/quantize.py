@@ -9,7 +9,8 @@ loads either model. Evaluate the result with
 `vision-eval --model tools/unet/model/unet_roi96_int8.onnx` before switching to it.
 
 Needs the `onnx` package next to onnxruntime (`pip install onnx`).
-Usage: python3 quantize.py --calib DATASET_SPLIT_DIR --model IN.onnx --out OUT.onnx [--samples 300]
+Usage: python3 quantize.py --calib SPLIT_DIR [--calib SPLIT_DIR ...] --model IN.onnx --out OUT.onnx
+       [--samples 300]
 """
 import argparse
 import os
@@ -43,12 +44,14 @@ KEYPOINT_HEAD = [
 class RoiReader(CalibrationDataReader):
     """Feeds ROI crops exactly as the service does: RGB in [0, 1], NCHW float32."""
 
-    def __init__(self, directory, limit):
-        n = sum(1 for _ in open(os.path.join(directory, "labels.csv"))) - 1
-        images = np.fromfile(os.path.join(directory, "images.u8"), dtype=np.uint8)
-        images = images.reshape(n, INPUT, INPUT, 3)[:limit]
+    def __init__(self, directories, limit):
+        crops = []
+        for directory in directories:
+            n = sum(1 for _ in open(os.path.join(directory, "labels.csv"))) - 1
+            images = np.fromfile(os.path.join(directory, "images.u8"), dtype=np.uint8)
+            crops.extend(images.reshape(n, INPUT, INPUT, 3)[:limit])
         self.batches = iter(
-            [img.transpose(2, 0, 1)[None].astype(np.float32) / 255.0 for img in images]
+            [img.transpose(2, 0, 1)[None].astype(np.float32) / 255.0 for img in crops]
         )
 
     def get_next(self):
@@ -58,10 +61,13 @@ class RoiReader(CalibrationDataReader):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--calib", required=True, help="unet-dataset split directory")
+    parser.add_argument(
+        "--calib", required=True, action="append",
+        help="unet-dataset split directory; repeat to mix (e.g. clean and shifted crops)",
+    )
     parser.add_argument("--model", required=True)
     parser.add_argument("--out", required=True)
-    parser.add_argument("--samples", type=int, default=300)
+    parser.add_argument("--samples", type=int, default=300, help="crops per --calib directory")
     parser.add_argument(
         "--exclude", nargs="*", default=[], help="more node names to keep in float"
     )

@@ -13,10 +13,18 @@ coordinates directly:
   output "keypoints" float32 [1, 3, 2], (x, y) of tip, centroid, tail in input pixels
   output "presence"  float32 [1, 1], logit that a capsule is in the crop
 
-Usage: python3 train.py --data DATASET_DIR --out model.onnx [--epochs 60]
+Training applies the camera's shifts to every batch (augment.py: scale, occlusion, colour cast,
+lighting, shadow, glare, bubbles, texture, blur, noise, JPEG) on top of flips and rotations;
+early stopping watches the validation loss on clean crops and on a fixed shifted copy of them.
+Beside the ONNX file it writes the PyTorch weights (.pt), from which --init fine-tunes.
+
+Usage: python3 train.py --data DATASET_DIR [--data MORE_TRAIN_DIR ...] --out model.onnx
+       [--epochs 60] [--init model.pt --lr 3e-4] [--augment flips]
 """
 import argparse
 import json
+import os
+import sys
 import time
 
 import numpy as np
@@ -24,18 +32,50 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import augment as camera  # noqa: E402  (beside this script)
+
 INPUT = 96
+HEADER = "index,has_robot,tip_x,tip_y,centroid_x,centroid_y,tail_x,tail_y,crop_col0,crop_row0,mm_per_px"
+
+
+def load_labels(directory):
+    path = f"{directory}/labels.csv"
+    with open(path) as f:
+        header = f.readline().strip()
+    if header != HEADER:
+        sys.exit(f"{path}: unexpected header (want {HEADER})")
+    return np.genfromtxt(path, delimiter=",", skip_header=1, dtype=np.float64).reshape(-1, 11)
 
 
 def load_split(directory):
-    labels = np.genfromtxt(f"{directory}/labels.csv", delimiter=",", skip_header=1, dtype=np.float64)
-    labels = labels.reshape(-1, 11)
+    labels = load_labels(directory)
     n = labels.shape[0]
-    images = np.fromfile(f"{directory}/images.u8", dtype=np.uint8).reshape(n, INPUT, INPUT, 3)
-    masks = np.fromfile(f"{directory}/masks.u8", dtype=np.uint8).reshape(n, INPUT, INPUT)
+    if n == 0:
+        sys.exit(f"{directory}: empty split")
+    images = np.fromfile(f"{directory}/images.u8", dtype=np.uint8)
+    masks = np.fromfile(f"{directory}/masks.u8", dtype=np.uint8)
+    if images.size != n * INPUT * INPUT * 3 or masks.size != n * INPUT * INPUT:
+        sys.exit(f"{directory}: images.u8/masks.u8 do not hold {n} crops of {INPUT}x{INPUT}")
+    images = images.reshape(n, INPUT, INPUT, 3)
+    masks = masks.reshape(n, INPUT, INPUT)
     has = labels[:, 1].astype(np.float32)
     kps = labels[:, 2:8].reshape(n, 3, 2).astype(np.float32)
     return images, masks, has, kps
+
+
+def save_split(directory, images, masks, has, kps, mm_per_px):
+    """Writes crops (tensors as training holds them) in unet-dataset's split format."""
+    os.makedirs(directory, exist_ok=True)
+    img = (images.permute(0, 2, 3, 1).clamp(0, 1) * 255).round().byte().cpu().numpy()
+    img.tofile(f"{directory}/images.u8")
+    masks.byte().cpu().numpy().tofile(f"{directory}/masks.u8")
+    k = kps.cpu().numpy().reshape(-1, 6)
+    with open(f"{directory}/labels.csv", "w") as f:
+        f.write(HEADER + "\n")
+        for i in range(img.shape[0]):
+            coords = ",".join(f"{v:.4f}" for v in k[i])
+            f.write(f"{i},{int(has[i].item() > 0.5)},{coords},0,0,{mm_per_px}\n")
 
 
 def conv_block(cin, cout):
@@ -82,7 +122,7 @@ class UNet(nn.Module):
         return seg, keypoints, presence
 
 
-def augment(img, mask, kps):
+def flips(img, mask, kps):
     """Random flips and 90-degree rotations of a batch (N,3,H,W), (N,H,W), (N,3,2)."""
     s = INPUT - 1
     if np.random.rand() < 0.5:
@@ -147,59 +187,108 @@ def evaluate(model, data, device, batch=256):
     }
 
 
+def concat(parts):
+    return tuple(torch.cat(xs) for xs in zip(*parts))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", required=True, help="dataset dir with train/ val/ test/")
-    ap.add_argument("--out", required=True, help="output .onnx path")
+    ap.add_argument("--data", required=True, action="append",
+                    help="dataset dir with train/ (val/ test/ from the first); repeat to add training crops")
+    ap.add_argument("--out", required=True, help="output .onnx path (the .pt weights go beside it)")
     ap.add_argument("--epochs", type=int, default=60)
     ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--patience", type=int, default=10, help="early stopping patience (epochs)")
+    ap.add_argument("--max-minutes", type=float, default=None, help="stop after this long (best weights kept)")
+    ap.add_argument("--augment", choices=["camera", "flips"], default="camera",
+                    help="camera: flips + camera shifts (augment.py); flips: flips and rotations only")
+    ap.add_argument("--init", default=None, help="start from these weights (.pt written by this script)")
+    ap.add_argument("--dump-augmented", default=None,
+                    help="also write this many shifted training crops as a split to DIR (e.g. quantization calibration)",
+                    nargs=2, metavar=("DIR", "COUNT"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--metrics", default=None, help="write final metrics JSON here")
     args = ap.parse_args()
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    train = to_tensors(*load_split(f"{args.data}/train"), device)
-    val = to_tensors(*load_split(f"{args.data}/val"), device)
-    test = to_tensors(*load_split(f"{args.data}/test"), device)
+    train = concat([to_tensors(*load_split(f"{d}/train"), device) for d in args.data])
+    val = to_tensors(*load_split(f"{args.data[0]}/val"), device)
+    test_dir = f"{args.data[0]}/test"
+    test = to_tensors(*load_split(test_dir), device) if os.path.isdir(test_dir) else val
+    # A fixed shifted copy of val (and test), so early stopping sees robustness too.
+    generator_state = torch.get_rng_state(), torch.cuda.get_rng_state_all() if device == "cuda" else None
+    torch.manual_seed(args.seed + 1)
+    v_img, v_mask, v_kps = camera.camera_shifts(val[0], val[1], val[3])
+    val_shifted = (v_img, v_mask, val[2], v_kps)
+    t_img, t_mask, t_kps = camera.camera_shifts(test[0], test[1], test[3])
+    test_shifted = (t_img, t_mask, test[2], t_kps)
+    torch.set_rng_state(generator_state[0])
+    if generator_state[1] is not None:
+        torch.cuda.set_rng_state_all(generator_state[1])
+    if args.dump_augmented:
+        directory, count = args.dump_augmented[0], int(args.dump_augmented[1])
+        idx = torch.randperm(train[0].shape[0], device=device)[:count]
+        img, mask, kps = camera.camera_shifts(train[0][idx], train[1][idx], train[3][idx])
+        mm_per_px = load_labels(f"{args.data[0]}/train")[0, 10]
+        save_split(directory, img, mask, train[2][idx], kps, mm_per_px)
+        print(f"wrote {idx.shape[0]} shifted training crops to {directory}")
     model = UNet().to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    if args.init:
+        model.load_state_dict(torch.load(args.init, map_location=device))
+        print(f"fine-tuning from {args.init}")
+    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=4)
     best, best_state, stale = float("inf"), None, 0
     n = train[0].shape[0]
     start = time.time()
+    epoch = -1
     for epoch in range(args.epochs):
         model.train()
         perm = torch.randperm(n, device=device)
         for i in range(0, n, args.batch):
             idx = perm[i:i + args.batch]
-            x, m, k = augment(train[0][idx], train[1][idx], train[3][idx])
+            x, m, k = flips(train[0][idx], train[1][idx], train[3][idx])
+            if args.augment == "camera":
+                x, m, k = camera.camera_shifts(x, m, k)
             seg, kp, pres = model(x)
             loss = loss_fn(seg, kp, pres, m, k, train[2][idx])
             opt.zero_grad()
             loss.backward()
             opt.step()
-        metrics = evaluate(model, val, device)
-        sched.step(metrics["loss"])
-        print(f"epoch {epoch:3d} val {json.dumps({k: round(v, 4) for k, v in metrics.items()})} lr {opt.param_groups[0]['lr']:.1e} t {time.time() - start:.0f}s", flush=True)
-        if metrics["loss"] < best - 1e-5:
-            best, stale = metrics["loss"], 0
+        clean = evaluate(model, val, device)
+        shifted = evaluate(model, val_shifted, device)
+        score = clean["loss"] + shifted["loss"]
+        sched.step(score)
+        summary = {k: round(v, 4) for k, v in clean.items()}
+        summary.update({f"shifted_{k}": round(v, 4) for k, v in shifted.items() if k in ("loss", "precision", "recall", "iou")})
+        print(f"epoch {epoch:3d} val {json.dumps(summary)} lr {opt.param_groups[0]['lr']:.1e} t {time.time() - start:.0f}s", flush=True)
+        if score < best - 1e-5:
+            best, stale = score, 0
             best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
         else:
             stale += 1
             if stale >= args.patience:
                 print(f"early stop at epoch {epoch}")
                 break
-    model.load_state_dict(best_state)
+        if args.max_minutes is not None and time.time() - start > 60 * args.max_minutes:
+            print(f"time limit at epoch {epoch}")
+            break
+    if best_state is not None:
+        model.load_state_dict(best_state)
     final = evaluate(model, test, device)
+    final["shifted"] = evaluate(model, test_shifted, device)
     final["epochs"] = epoch + 1
     final["train_samples"] = n
+    final["augment"] = args.augment
+    final["init"] = args.init
     print("test", json.dumps(final))
     if args.metrics:
         with open(args.metrics, "w") as f:
             json.dump(final, f, indent=2)
     model = model.cpu().eval()
+    torch.save(model.state_dict(), os.path.splitext(args.out)[0] + ".pt")
     dummy = torch.zeros(1, 3, INPUT, INPUT)
     torch.onnx.export(
         model, dummy, args.out, input_names=["image"], output_names=["seg", "keypoints", "presence"],
