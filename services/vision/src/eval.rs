@@ -8,7 +8,7 @@ use millinav_roi::dataset::Split;
 use millinav_roi::roi::{Crop, DOWNSAMPLE, INPUT_PX};
 use opencv::prelude::*;
 
-use crate::classical::ClassicalLocalizer;
+use crate::classical::{ClassicalLocalizer, LocalizeError};
 use crate::unet::{detection_from_output, UnetLocalizer};
 
 /// Metrics of one localizer over a split.
@@ -23,6 +23,12 @@ pub struct Report {
     pub detection_rate: f64,
     /// Detections on crops without a robot / crops without a robot.
     pub false_detection_rate: f64,
+    /// True poses the gates rejected, / crops with a robot: no detection (the UNet's presence
+    /// gate, the classical blob search), implausible mask area, implausible tip–tail spacing
+    /// (UNet) or no visible magnet (classical).
+    pub rejected_not_found: f64,
+    pub rejected_area: f64,
+    pub rejected_spacing: f64,
     pub centroid_err_mm_median: f64,
     pub centroid_err_mm_p95: f64,
     pub tip_err_mm_median: f64,
@@ -49,6 +55,7 @@ struct Tally {
     with_robot: usize,
     false_found: usize,
     without_robot: usize,
+    rejected: [usize; 3],
     centroid: Vec<f64>,
     tip: Vec<f64>,
     latency_ms: Vec<f64>,
@@ -66,8 +73,18 @@ impl Tally {
         }
     }
 
+    /// Counts why a true pose was rejected.
+    fn rejected(&mut self, error: &LocalizeError) {
+        match error {
+            LocalizeError::ImplausibleArea { .. } => self.rejected[1] += 1,
+            LocalizeError::Ambiguous => self.rejected[2] += 1,
+            LocalizeError::NotFound | LocalizeError::OpenCv(_) => self.rejected[0] += 1,
+        }
+    }
+
     fn report(mut self, name: &'static str, samples: usize) -> Report {
         let tp = self.tp as f64;
+        let rate = |n: usize| n as f64 / self.with_robot.max(1) as f64;
         Report {
             name,
             samples,
@@ -76,6 +93,9 @@ impl Tally {
             iou: tp / (tp + self.fp as f64 + self.fn_ as f64).max(1.0),
             detection_rate: self.found as f64 / self.with_robot.max(1) as f64,
             false_detection_rate: self.false_found as f64 / self.without_robot.max(1) as f64,
+            rejected_not_found: rate(self.rejected[0]),
+            rejected_area: rate(self.rejected[1]),
+            rejected_spacing: rate(self.rejected[2]),
             centroid_err_mm_median: quantile(&mut self.centroid, 0.5),
             centroid_err_mm_p95: quantile(&mut self.centroid, 0.95),
             tip_err_mm_median: quantile(&mut self.tip, 0.5),
@@ -112,6 +132,11 @@ pub fn evaluate_unet(unet: &mut UnetLocalizer, split: &Split, expected_length_px
         let mm_per_input_px = label.mm_per_px * f;
         if label.has_robot {
             t.with_robot += 1;
+            match &detection {
+                Some(Err(e)) => t.rejected(e),
+                None => t.rejected[0] += 1,
+                Some(Ok(_)) => {}
+            }
             if let Some(Ok(d)) = detection {
                 t.found += 1;
                 // Detection is in frame pixels of a crop at (0, 0): back to input pixels.
@@ -152,6 +177,9 @@ pub fn evaluate_classical(classical: &ClassicalLocalizer, split: &Split) -> Repo
         t.mask(&predicted, split.mask(i));
         if label.has_robot {
             t.with_robot += 1;
+            if let Err(e) = &result {
+                t.rejected(e);
+            }
             if let Ok((d, _)) = &result {
                 t.found += 1;
                 t.centroid
@@ -169,12 +197,15 @@ pub fn evaluate_classical(classical: &ClassicalLocalizer, split: &Split) -> Repo
 /// The accuracy columns of a table row: precision, recall, IoU, detection rates, keypoint errors.
 fn accuracy_cells(r: &Report) -> String {
     format!(
-        "{:.2} % | {:.2} % | {:.2} % | {:.1} % | {:.1} % | {:.3} / {:.3} | {:.3} / {:.3}",
+        "{:.2} % | {:.2} % | {:.2} % | {:.1} % | {:.1} % | {:.1} / {:.1} / {:.1} % | {:.3} / {:.3} | {:.3} / {:.3}",
         100.0 * r.precision,
         100.0 * r.recall,
         100.0 * r.iou,
         100.0 * r.detection_rate,
         100.0 * r.false_detection_rate,
+        100.0 * r.rejected_not_found,
+        100.0 * r.rejected_area,
+        100.0 * r.rejected_spacing,
         r.centroid_err_mm_median,
         r.centroid_err_mm_p95,
         r.tip_err_mm_median,
@@ -185,7 +216,7 @@ fn accuracy_cells(r: &Report) -> String {
 /// A Markdown table of reports side by side.
 pub fn table(reports: &[Report]) -> String {
     let mut out = String::from(
-        "| localizer | samples | precision | recall | IoU | detected | false det. | centroid err mm (median / p95) | tip err mm (median / p95) | latency ms (median / p99) |\n|---|---|---|---|---|---|---|---|---|---|\n",
+        "| localizer | samples | precision | recall | IoU | detected | false det. | true poses rejected (not found / area / spacing) | centroid err mm (median / p95) | tip err mm (median / p95) | latency ms (median / p99) |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in reports {
         out.push_str(&format!(
@@ -251,7 +282,7 @@ pub fn robustness(
 /// A Markdown table of the robustness suite (latency left out: it does not depend on the shift).
 pub fn robustness_table(rows: &[RobustnessRow]) -> String {
     let mut out = String::from(
-        "| shift | severity | localizer | precision | recall | IoU | detected | false det. | centroid err mm (median / p95) | tip err mm (median / p95) |\n|---|---|---|---|---|---|---|---|---|---|\n",
+        "| shift | severity | localizer | precision | recall | IoU | detected | false det. | true poses rejected (not found / area / spacing) | centroid err mm (median / p95) | tip err mm (median / p95) |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for row in rows {
         let r = &row.report;

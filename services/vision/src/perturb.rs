@@ -328,18 +328,26 @@ pub fn perturb(
                 core::Scalar::default(),
             )?;
             img = from_mat(&dst)?;
-            let mask_mat = Mat::from_slice(&truth)?.reshape(1, N as i32)?.try_clone()?;
+            // The truth is resampled linearly and cut at half, so its edge moves with the image
+            // to a fraction of a pixel (nearest-neighbour moved it by up to half a pixel).
+            let levels: Vec<u8> = truth.iter().map(|&t| if t > 0 { 255 } else { 0 }).collect();
+            let mask_mat = Mat::from_slice(&levels)?
+                .reshape(1, N as i32)?
+                .try_clone()?;
             let mut mask_dst = Mat::default();
             imgproc::warp_affine(
                 &mask_mat,
                 &mut mask_dst,
                 &m,
                 size,
-                imgproc::INTER_NEAREST,
+                imgproc::INTER_LINEAR,
                 core::BORDER_CONSTANT,
                 core::Scalar::default(),
             )?;
-            truth = from_mat(&mask_dst)?;
+            truth = from_mat(&mask_dst)?
+                .into_iter()
+                .map(|v| u8::from(v >= 128))
+                .collect();
             let scale = |p: (f64, f64)| (k * (p.0 - h) + h, k * (p.1 - h) + h);
             label.tip = scale(label.tip);
             label.centroid = scale(label.centroid);
