@@ -5,6 +5,7 @@ use std::process::Command;
 use std::sync::OnceLock;
 use std::time::Duration;
 
+use millinav_kit::summary::{RunSummary, SUMMARY_JSON};
 use millinav_tests::{scenario_text, tracking, venv_dir, RunSet, Tracking};
 
 /// RMSE bound for PID on this short static-fluid path (the paper's PID: 0.82 mm at 20 cP).
@@ -70,6 +71,50 @@ fn follows_a_short_path_to_its_end_in_lockstep() {
         "leaked segments: {:?}",
         o.run.shm_segments()
     );
+}
+
+#[test]
+fn the_run_ends_with_a_summary_that_agrees_with_its_logs() {
+    let o = outcome();
+    let printed = o.run.supervisor_stdout().expect("supervisor stdout");
+    println!("{printed}");
+    for line in [
+        "Run summary",
+        "as control saw:",
+        "truth (twin):",
+        "rerun ",
+        "summary.json",
+    ] {
+        assert!(printed.contains(line), "{line:?} missing from\n{printed}");
+    }
+    let text = std::fs::read_to_string(o.run.run_dir.join(SUMMARY_JSON)).expect("summary.json");
+    let summary: RunSummary = serde_json::from_str(&text).expect("summary.json parses");
+    assert_eq!(summary.ending, "run complete");
+    // Truth against the reference: what the test harness measures from truth.csv (the summary
+    // takes the reference at control's actuation time, a frame later: 2 mm/s × 10 ms).
+    let truth = summary.truth.expect("truth figures in the twin");
+    assert!(truth.completed, "{summary:?}");
+    assert!(
+        (truth.rmse_mm - o.tracking.rmse_m * 1e3).abs() < 0.02 + 0.05 * truth.rmse_mm,
+        "summary RMSE {} mm, harness {} mm",
+        truth.rmse_mm,
+        o.tracking.rmse_m * 1e3
+    );
+    // What control saw is vision's pose: within a few hundredths of a mm of the truth's figures.
+    let seen = summary.as_control_saw.expect("control figures");
+    assert!(
+        seen.completed && (seen.rmse_mm - truth.rmse_mm).abs() < 0.05,
+        "{summary:?}"
+    );
+    assert!(
+        summary.poses_used as f64 > 0.95 * summary.frames as f64,
+        "{summary:?}"
+    );
+    assert!(summary.frames > 500, "7 s at 100 Hz: {summary:?}");
+    assert_eq!(summary.wall_contacts, Some(0));
+    assert!(summary.restarts.values().all(|&r| r == 0), "{summary:?}");
+    assert!(summary.peak_current_a > 0.0 && summary.energy_j.is_some_and(|e| e > 0.0));
+    assert!(summary.recording.as_ref().is_some_and(|p| p.is_file()));
 }
 
 #[test]

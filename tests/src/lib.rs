@@ -67,7 +67,7 @@ impl RunSet {
             .arg(&iox_root)
             .env("PATH", path_with_rerun())
             .stdin(Stdio::null())
-            .stdout(Stdio::null())
+            .stdout(std::fs::File::create(base.join("supervisor.out"))?)
             .stderr(std::fs::File::create(base.join("supervisor.log"))?);
         let supervisor = command.spawn().context("starting millinav run")?;
         Ok(Self {
@@ -223,6 +223,12 @@ impl RunSet {
     pub fn supervisor_console(&self) -> anyhow::Result<String> {
         let base = self.run_dir.parent().context("run dir has no parent")?;
         Ok(std::fs::read_to_string(base.join("supervisor.log"))?)
+    }
+
+    /// What the supervisor printed on stdout (the run summary).
+    pub fn supervisor_stdout(&self) -> anyhow::Result<String> {
+        let base = self.run_dir.parent().context("run dir has no parent")?;
+        Ok(std::fs::read_to_string(base.join("supervisor.out"))?)
     }
 
     /// Services the supervisor started (its `spawn` events); none when it never got that far.

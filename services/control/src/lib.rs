@@ -25,6 +25,7 @@ use millinav_kit::contract::ContractViolations;
 use millinav_kit::ports::{Inbox, Outbox};
 use millinav_kit::recording;
 use millinav_kit::rerun;
+use millinav_kit::runlog::{ControlRow, RunLogWriter};
 use millinav_kit::scenario::Scenario;
 use millinav_kit::{ConfigContext, ConfigError, Runtime, ServiceLoop};
 use nalgebra::{DVector, Vector2, Vector3};
@@ -971,6 +972,33 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
     }
 }
 
+/// `control.csv` is flushed every this many frames.
+const DECISIONS_PER_FLUSH: u64 = 50;
+
+/// The `control.csv` row of one decision (for the run summary).
+fn control_row(pose: &Pose, d: &Decision, now_ns: u64) -> ControlRow {
+    let currents = d.command.currents().unwrap_or_default();
+    let used = d.rejected.is_none() && pose.is_usable();
+    let measured = if pose.is_usable() {
+        pose.position_m
+    } else {
+        [f64::NAN; 2]
+    };
+    ControlRow {
+        frame_seq: pose.stamp.seq,
+        time_s: now_ns as f64 * 1e-9,
+        pose_used: used,
+        measured_x_m: measured[0],
+        measured_y_m: measured[1],
+        reference_x_m: d.reference_m.x,
+        reference_y_m: d.reference_m.y,
+        finished: d.finished,
+        mode: d.command.mode,
+        max_abs_current_a: currents.iter().fold(0.0, |m: f64, c| m.max(c.abs())),
+        sum_sq_current_a2: currents.iter().map(|c| c * c).sum(),
+    }
+}
+
 /// Without flow estimates for this long, control commands the safe state.
 pub const FLOW_LOST_AFTER: Duration = Duration::from_millis(50);
 
@@ -1012,6 +1040,9 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow
     let poses = Inbox::<Pose>::new(&rt.node, services::POSE)?;
     let flows = Inbox::<FlowEstimate>::new(&rt.node, services::FLOW)?;
     let commands = Outbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
+    std::fs::create_dir_all(&rt.env.run_dir)?;
+    // Append: a restarted control continues the same log.
+    let mut decisions = RunLogWriter::<ControlRow>::in_run_dir(&rt.env.run_dir)?;
     let mut flow_cache = Vec::new();
     let mut flow_misses: u64 = 0;
     // Wall time of the last flow estimate: flow is an input of the loop, and losing it must
@@ -1061,6 +1092,11 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow
             control.step_at(&pose, flow.as_ref(), now_ns)
         };
         commands.send(decision.command)?;
+        decisions.append(&control_row(&pose, &decision, now_ns))?;
+        // Flushed twice a second at 100 Hz: a killed control loses at most that much.
+        if pose.stamp.seq.is_multiple_of(DECISIONS_PER_FLUSH) {
+            decisions.flush()?;
+        }
         recording::set_time(&rt.rec, pose.stamp.capture_time_ns, pose.stamp.seq);
         log_decision(&rt.rec, &pose, &decision);
         log_coil_gains(&rt.rec, &control, decision.gain_update);

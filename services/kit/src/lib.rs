@@ -11,6 +11,7 @@ pub mod runlog;
 pub mod scenario;
 pub mod service_loop;
 pub mod service_main;
+pub mod summary;
 
 pub use config::{ConfigContext, ConfigError, EXIT_CONFIG};
 pub use service_loop::{ServiceLoop, Wake};
@@ -38,6 +39,8 @@ pub mod env_vars {
     pub const RECORDING_ID: &str = "MILLINAV_RECORDING_ID";
     /// Restart count of this process, set by the supervisor (0 on first start).
     pub const INCARNATION: &str = "MILLINAV_INCARNATION";
+    /// `1`: lock the process's memory at start (`mlockall`), set from the launch file.
+    pub const LOCK_MEMORY: &str = "MILLINAV_LOCK_MEMORY";
     /// CLOCK_MONOTONIC nanoseconds at run start: the origin of the real-time run clock.
     pub const CLOCK_EPOCH_NS: &str = "MILLINAV_CLOCK_EPOCH_NS";
     /// `off` disables Rerun logging in this process.
@@ -211,6 +214,7 @@ impl Runtime {
             .map_err(iox("node"))?;
         let heartbeat = ports::HeartbeatSender::new(&node, service, env.incarnation)?;
         let rec = recording::open(&env, service)?;
+        lock_memory_if_asked();
         tracing::info!(
             service = service.name(),
             incarnation = env.incarnation,
@@ -229,5 +233,20 @@ impl Runtime {
     /// True once SIGINT or SIGTERM has been received.
     pub fn shutdown_requested(&self) -> bool {
         self.node.wait(Duration::ZERO).is_err()
+    }
+}
+
+/// Locks the process's memory when the launch file asked for it (`MILLINAV_LOCK_MEMORY=1`);
+/// without the permission (root, CAP_IPC_LOCK or a memlock limit) it runs unlocked and says so.
+fn lock_memory_if_asked() {
+    if std::env::var(env_vars::LOCK_MEMORY).as_deref() != Ok("1") {
+        return;
+    }
+    use nix::sys::mman::{mlockall, MlockAllFlags};
+    match mlockall(MlockAllFlags::MCL_CURRENT | MlockAllFlags::MCL_FUTURE) {
+        Ok(()) => tracing::info!("memory locked (mlockall)"),
+        Err(e) => tracing::warn!(
+            "memory not locked: mlockall failed: {e} (needs root, CAP_IPC_LOCK or `ulimit -l`)"
+        ),
     }
 }

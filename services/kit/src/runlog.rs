@@ -404,6 +404,57 @@ impl RunLogRow for SupervisorEventRow {
     const COLUMNS: &'static [&'static str] = &["monotonic_ns", "service", "event", "detail"];
 }
 
+/// One control decision (`control.csv`): what control saw, where the reference was, what it
+/// commanded. The run summary's "as control saw it" figures come from here, on the rig as in
+/// the twin.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ControlRow {
+    pub frame_seq: u64,
+    /// Time on control's clock at which the command acts (the reference's time), s.
+    #[serde(serialize_with = "fixed6")]
+    pub time_s: f64,
+    /// Whether the pose was used (a valid pose that passed control's gates).
+    #[serde(with = "flag01")]
+    pub pose_used: bool,
+    /// The measured position (NaN without a valid pose).
+    #[serde(serialize_with = "fixed9")]
+    pub measured_x_m: f64,
+    #[serde(serialize_with = "fixed9")]
+    pub measured_y_m: f64,
+    #[serde(serialize_with = "fixed9")]
+    pub reference_x_m: f64,
+    #[serde(serialize_with = "fixed9")]
+    pub reference_y_m: f64,
+    /// The reference has reached its last waypoint.
+    #[serde(with = "flag01")]
+    pub finished: bool,
+    /// A `ControlMode` discriminant.
+    pub mode: u32,
+    /// Largest commanded coil current, A.
+    #[serde(serialize_with = "fixed6")]
+    pub max_abs_current_a: f64,
+    /// Σ I² of the commanded currents, A².
+    #[serde(serialize_with = "fixed6")]
+    pub sum_sq_current_a2: f64,
+}
+
+impl RunLogRow for ControlRow {
+    const FILE_NAME: &'static str = "control.csv";
+    const COLUMNS: &'static [&'static str] = &[
+        "frame_seq",
+        "time_s",
+        "pose_used",
+        "measured_x_m",
+        "measured_y_m",
+        "reference_x_m",
+        "reference_y_m",
+        "finished",
+        "mode",
+        "max_abs_current_a",
+        "sum_sq_current_a2",
+    ];
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -5,6 +5,8 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use shm_schemas::ServiceId;
 
+use crate::realtime::Realtime;
+
 #[derive(Debug, thiserror::Error)]
 pub enum LaunchError {
     #[error("cannot read launch file {path}: {source}")]
@@ -33,6 +35,9 @@ pub struct ProcessSpec {
     /// Restart the process when it dies (default true).
     #[serde(default = "yes")]
     pub restart: bool,
+    /// Scheduling priority, CPU affinity and memory locking (`[process.realtime]`).
+    #[serde(default)]
+    pub realtime: Realtime,
 }
 
 fn yes() -> bool {
@@ -92,6 +97,7 @@ impl Default for LaunchFile {
             binary: None,
             args: Vec::new(),
             restart: true,
+            realtime: Realtime::default(),
         };
         Self {
             processes: ["plant", "coilbus", "flow", "vision", "control"]
@@ -135,6 +141,9 @@ impl LaunchFile {
                 }
                 Some(id) => seen.push(id),
             }
+            p.realtime
+                .validate()
+                .map_err(|e| invalid(format!("process {:?}: realtime: {e}", p.name)))?;
         }
         if launch.restart.initial_backoff_ms == 0
             || launch.restart.max_backoff_ms < launch.restart.initial_backoff_ms
@@ -329,6 +338,7 @@ mod tests {
             binary: Some("/usr/bin/env".into()),
             args: Vec::new(),
             restart: true,
+            realtime: Realtime::default(),
         };
         assert_eq!(absolute.executable(&dir), PathBuf::from("/usr/bin/env"));
         std::fs::remove_file(dir.join("sub/my-vision")).expect("remove");

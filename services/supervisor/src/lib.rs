@@ -5,6 +5,7 @@
 
 pub mod launch;
 pub mod preflight;
+pub mod realtime;
 pub mod restart;
 
 use std::collections::BTreeMap;
@@ -20,6 +21,7 @@ use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
 use millinav_kit::ports::{heartbeat_listener, Inbox};
 use millinav_kit::runlog::{RunLogWriter, SupervisorEventRow};
 use millinav_kit::scenario::Scenario;
+use millinav_kit::summary::{RunFacts, RunSummary};
 use millinav_kit::{clock, env_vars, recording, rerun, Runtime};
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
@@ -200,6 +202,8 @@ pub struct Supervisor {
     processes: Vec<ManagedProcess>,
     pub events: EventLog,
     base_env: Vec<(String, String)>,
+    /// Latest deadline-miss count of each (service, incarnation), for the run summary.
+    deadline_misses: BTreeMap<(u32, u64), u64>,
 }
 
 impl Supervisor {
@@ -221,6 +225,14 @@ impl Supervisor {
             .args(&process.spec.args)
             .envs(self.base_env.iter().map(|(k, v)| (k.as_str(), v.as_str())))
             .env(env_vars::INCARNATION, process.incarnation.to_string())
+            .env(
+                env_vars::LOCK_MEMORY,
+                if process.spec.realtime.lock_memory {
+                    "1"
+                } else {
+                    "0"
+                },
+            )
             .stdin(Stdio::null())
             .stdout(log.try_clone()?)
             .stderr(log)
@@ -264,6 +276,15 @@ impl Supervisor {
         process.restart_at = None;
         self.events
             .record(id, "spawn", &format!("pid={pid} incarnation={incarnation}"));
+        for outcome in self.processes[index].spec.realtime.apply(pid) {
+            match outcome {
+                realtime::Outcome::Applied(what) => self.events.record(id, "realtime", &what),
+                realtime::Outcome::Denied(why) => {
+                    tracing::warn!(service = %name, "real-time setting not applied: {why}");
+                    self.events.record(id, "realtime_denied", &why);
+                }
+            }
+        }
         Ok(())
     }
 
@@ -519,6 +540,7 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
         std::env::set_var(k, v);
     }
     let rt = Runtime::start(ServiceId::Supervisor)?;
+    let started = Instant::now();
     tracing::info!(
         run_dir = %plan.run_dir.display(),
         scenario = %plan.scenario_path.display(),
@@ -532,7 +554,66 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
     let ending = supervisor
         .spawn_all()
         .and_then(|()| monitor(&mut supervisor, &rt, &heartbeats));
-    finish(supervisor, rt, heartbeats, viewer, &plan.run_dir, ending)
+    let coil_resistance_ohm = plan
+        .scenario
+        .rig()
+        .ok()
+        .map(|rig| rig.coil_limits().coil_resistance_ohm);
+    let summary = SummaryContext {
+        started,
+        coil_resistance_ohm,
+    };
+    finish(
+        supervisor,
+        rt,
+        heartbeats,
+        viewer,
+        &plan.run_dir,
+        ending,
+        summary,
+    )
+}
+
+/// What the run summary needs from `run` beyond the supervisor.
+struct SummaryContext {
+    started: Instant,
+    coil_resistance_ohm: Option<f64>,
+}
+
+impl Supervisor {
+    /// The supervisor's part of the run summary.
+    fn facts(&self, ending: &anyhow::Result<Ending>, context: &SummaryContext) -> RunFacts {
+        let mut deadline_misses = BTreeMap::new();
+        for ((service, _), misses) in &self.deadline_misses {
+            if let Some(id) = ServiceId::from_u32(*service) {
+                *deadline_misses.entry(id.name().to_string()).or_insert(0) += misses;
+            }
+        }
+        let restarts = self
+            .processes
+            .iter()
+            .map(|p| (p.spec.name.clone(), p.incarnation))
+            .collect();
+        RunFacts {
+            ending: match ending {
+                Ok(Ending::RunComplete) => "run complete".into(),
+                Ok(Ending::Signal) => "stopped by a signal (Ctrl-C or SIGTERM)".into(),
+                Ok(Ending::WallTimeLimit) => {
+                    format!("wall-time limit ({:?}) reached", self.options.max_wall_time)
+                }
+                Ok(Ending::ConfigError(_)) => "a service rejected its configuration".into(),
+                Ok(Ending::BoardFault(name)) => {
+                    format!("coil-driver board fault `{name}`: coils held at zero")
+                }
+                Err(e) => format!("supervisor failed: {e:#}"),
+            },
+            duration_s: context.started.elapsed().as_secs_f64(),
+            deadline_misses,
+            restarts,
+            coil_resistance_ohm: context.coil_resistance_ohm,
+            recording: None,
+        }
+    }
 }
 
 /// Loads the scenario (its own errors name the file and field), makes the run directory and
@@ -639,6 +720,7 @@ impl Supervisor {
             processes,
             events: EventLog::new(&plan.run_dir, rt.rec.clone())?,
             base_env,
+            deadline_misses: BTreeMap::new(),
         })
     }
 }
@@ -679,6 +761,7 @@ fn finish(
     viewer: Option<(Child, String)>,
     run_dir: &Path,
     ending: anyhow::Result<Ending>,
+    context: SummaryContext,
 ) -> anyhow::Result<()> {
     if let Err(e) = &ending {
         tracing::error!("supervisor loop failed: {e:#}");
@@ -693,12 +776,29 @@ fn finish(
     }
     drop(heartbeats);
     let _ = rt.rec.flush_blocking();
+    let mut facts = supervisor.facts(&ending, &context);
     drop(supervisor);
     drop(rt);
-    match merge_recordings(run_dir) {
-        Ok(Some(path)) => tracing::info!(recording = %path.display(), "recording written"),
-        Ok(None) => {}
-        Err(e) => tracing::warn!("could not merge recordings: {e:#}"),
+    facts.recording = match merge_recordings(run_dir) {
+        Ok(Some(path)) => {
+            tracing::info!(recording = %path.display(), "recording written");
+            Some(path)
+        }
+        Ok(None) => None,
+        Err(e) => {
+            tracing::warn!("could not merge recordings: {e:#}");
+            None
+        }
+    };
+    match RunSummary::compute(run_dir, &facts) {
+        Ok(summary) => {
+            print!("{}", summary.text());
+            match summary.write_json() {
+                Ok(path) => println!("  summary:          {}", path.display()),
+                Err(e) => tracing::warn!("could not write the run summary: {e}"),
+            }
+        }
+        Err(e) => tracing::warn!("no run summary: {e}"),
     }
     match ending? {
         Ending::ConfigError(error) => Err(error.into()),
@@ -762,6 +862,9 @@ fn monitor(
         let now = Instant::now();
         note_heartbeats(supervisor, heartbeats, &mut beating, now);
         for beat in heartbeats.health.receive_all()? {
+            supervisor
+                .deadline_misses
+                .insert((beat.service, beat.incarnation), beat.deadline_misses);
             latest_health.insert(beat.service, beat);
         }
         for status in heartbeats.coil_status.receive_all()? {

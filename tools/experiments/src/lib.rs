@@ -25,6 +25,7 @@ use millinav_control::reference::Reference;
 use millinav_kit::clock::secs_to_ns;
 use millinav_kit::runlog::{self, RunLogRow, TruthRow};
 use millinav_kit::scenario::Scenario;
+use millinav_kit::summary::{tracking, ErrorSample};
 use millinav_plant::PlantConfig;
 use nalgebra::Vector2;
 use rand::SeedableRng;
@@ -668,58 +669,32 @@ pub struct Metrics {
     pub current_tv_a_per_s: f64,
 }
 
-/// "Failed to complete": the error stays above `FAIL_ERROR_M` for longer than `FAIL_TIME_S`
-/// (the robot was lost or stuck), or the robot never arrives: it is not within `FAIL_ERROR_M`
-/// of the final waypoint at any time after the reference reached it (a run cut short before
-/// that must end within `FAIL_ERROR_M` of the reference). Arrival, not the last sample, because
-/// at the outlet of the 10 cm/s maps the pulsatile jet pushes the capsule out and back every
-/// second or so, and the last sample would make completion a coin toss.
-pub const FAIL_ERROR_M: f64 = 5.0e-3;
-pub const FAIL_TIME_S: f64 = 2.0;
+/// The completion rule (error above `FAIL_ERROR_M` for `FAIL_TIME_S`, or no arrival) is the run
+/// summary's: one rule for the tables and the end of every run.
+pub use millinav_kit::summary::{FAIL_ERROR_M, FAIL_TIME_S};
 
 pub fn metrics(trace: &[TraceRow], reference: &Reference, coil_resistance_ohm: f64) -> Metrics {
-    let mut errors = Vec::with_capacity(trace.len());
-    let mut above_since: Option<f64> = None;
-    let mut failed = false;
+    let mut samples = Vec::with_capacity(trace.len());
     let mut energy = 0.0;
-    let mut reference_finished = false;
-    let mut arrived = false;
     for (i, row) in trace.iter().enumerate() {
         let sample = reference.sample(row.time_s);
-        let e = (row.position_m - sample.position_m).norm();
-        errors.push(e);
-        reference_finished |= sample.finished;
-        arrived |= sample.finished && e <= FAIL_ERROR_M;
-        if e > FAIL_ERROR_M {
-            let since = *above_since.get_or_insert(row.time_s);
-            failed |= row.time_s - since > FAIL_TIME_S;
-        } else {
-            above_since = None;
-        }
+        samples.push(ErrorSample {
+            time_s: row.time_s,
+            error_m: (row.position_m - sample.position_m).norm(),
+            reference_finished: sample.finished,
+        });
         if i > 0 {
             energy +=
                 row.sum_sq_current_a2 * coil_resistance_ohm * (row.time_s - trace[i - 1].time_s);
         }
     }
     let current_steps = CurrentSteps::of(trace);
-    let final_error = errors.last().copied().unwrap_or(f64::INFINITY);
-    let rmse = (errors.iter().map(|e| e * e).sum::<f64>() / errors.len().max(1) as f64).sqrt();
-    let mut sorted = errors.clone();
-    sorted.sort_by(|a, b| a.total_cmp(b));
-    let p95 = sorted
-        .get(((sorted.len() as f64 - 1.0) * 0.95).round() as usize)
-        .copied()
-        .unwrap_or(f64::NAN);
+    let tracking = tracking(&samples);
     Metrics {
-        rmse_mm: rmse * 1e3,
-        p95_mm: p95 * 1e3,
-        max_mm: sorted.last().copied().unwrap_or(f64::NAN) * 1e3,
-        completed: !failed
-            && if reference_finished {
-                arrived
-            } else {
-                final_error <= FAIL_ERROR_M
-            },
+        rmse_mm: tracking.rmse_mm,
+        p95_mm: tracking.p95_mm,
+        max_mm: tracking.max_mm,
+        completed: tracking.completed,
         wall_contact_frames: trace.iter().filter(|r| r.wall_contact).count(),
         peak_current_a: trace.iter().fold(0.0, |m, r| m.max(r.max_abs_current_a)),
         energy_j: energy,
