@@ -234,6 +234,29 @@ mod tests {
     }
 
     #[test]
+    fn the_realtime_launch_file_parses_and_bad_settings_name_the_process() {
+        let path =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenarios/launch/realtime.toml");
+        let launch = LaunchFile::load(&path).expect("scenarios/launch/realtime.toml");
+        let control = launch
+            .processes
+            .iter()
+            .find(|p| p.name == "control")
+            .unwrap();
+        assert_eq!(control.realtime.fifo_priority, Some(70));
+        assert!(control.realtime.lock_memory);
+        let plant = launch.processes.iter().find(|p| p.name == "plant").unwrap();
+        assert!(!plant.realtime.is_set());
+        let err = parse_err("[[process]]\nname = \"vision\"\nrealtime = { fifo_priority = 120 }\n");
+        assert!(err.contains("\"vision\"") && err.contains("1-99"), "{err}");
+        let err = parse_err("[[process]]\nname = \"control\"\nrealtime = { priority = 5 }\n");
+        assert!(
+            err.contains("unknown field") && err.contains("priority"),
+            "{err}"
+        );
+    }
+
+    #[test]
     fn duplicate_process_names_are_rejected() {
         let err = parse_err("[[process]]\nname = \"plant\"\n[[process]]\nname = \"plant\"\n");
         assert!(err.contains("\"plant\" listed twice"), "{err}");
