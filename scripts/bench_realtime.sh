@@ -23,6 +23,8 @@ rows=()
 for setting in default realtime; do
   launch=()
   [ "$setting" = realtime ] && launch=(--launch scenarios/launch/realtime.toml)
+  # A fresh run directory: logs append, and an earlier run's rows would mix in.
+  rm -rf "${OUT:?}/$setting"
   for _ in $(seq "$(nproc)"); do (while :; do :; done) & hogs+=($!); done
   echo "== $setting: $MINUTES min at 100 Hz with $(nproc) busy loops beside the set" >&2
   "$B/millinav" run "$SCENARIO" "${launch[@]}" --run-dir "$OUT/$setting" --viewer none \
@@ -37,11 +39,11 @@ s = json.load(open(sys.argv[1]))
 m = s["deadline_misses"]
 per = ", ".join(f"{k} {m.get(k, 0)}" for k in ["plant", "vision", "flow", "control", "coilbus"])
 seen = s.get("as_control_saw") or {}
-print(f"| {sys.argv[2]} | {s['duration_s']:.0f} s | {s['frames']} | {sum(m.values())} | {per} | "
+print(f"| {sys.argv[2]} | {s['duration_s']:.0f} s | {s['frames']} ({s['frames'] / (100 * s['duration_s']):.0%}) | {sum(m.values())} | {per} | "
       f"{sys.argv[3]} | {seen.get('rmse_mm', float('nan')):.3f} mm |")
 PY
 )")
 done
-echo "| launch | duration | frames answered | deadline misses | per service | settings denied | RMSE (control saw) |"
+echo "| launch | duration | frames answered (of 100 Hz) | deadline misses | per service | settings denied | RMSE (control saw) |"
 echo "|---|---|---|---|---|---|---|"
 printf '%s\n' "${rows[@]}"

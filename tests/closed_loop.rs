@@ -164,10 +164,39 @@ fn recording_parses_back_with_image_pose_error_and_current_entities() {
         "/control/force_des_n/x",
         "/coilbus/current_a/0",
         "/world/planned_path",
+        // The 3D rig: coils coloured by current, canal outline, capsule, field and force.
+        "/rig3d/coils",
+        "/rig3d/canal",
+        "/rig3d/robot",
+        "/rig3d/field",
+        "/rig3d/force",
     ] {
         assert!(
             paths.lines().any(|p| p.trim() == wanted),
             "entity {wanted} missing from the recording"
         );
     }
+    // The viewer's layout travels with the recording: a blueprint store with its views.
+    let python = venv_dir().join("bin/python");
+    let layout = Command::new(python)
+        .arg("-c")
+        .arg(
+            "import sys\nfrom rerun.experimental import RrdReader\nr = RrdReader(sys.argv[1])\n\
+             bps = r.blueprints()\nprint(len(bps))\n\
+             print('\\n'.join(sorted({c.entity_path for c in r.stream(store=bps[0])})) if bps else '')",
+        )
+        .arg(&rrd)
+        .output()
+        .expect("run the Python reader");
+    let text = String::from_utf8_lossy(&layout.stdout);
+    println!("blueprint stores and entities:\n{text}");
+    assert!(
+        layout.status.success(),
+        "{}",
+        String::from_utf8_lossy(&layout.stderr)
+    );
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("1"), "one blueprint in run.rrd\n{text}");
+    let views = lines.filter(|l| l.starts_with("/view/")).count();
+    assert!(views >= 9, "{views} views in the blueprint\n{text}");
 }

@@ -257,6 +257,26 @@ impl CanalMask {
     pub fn canal_flags(&self) -> &[bool] {
         &self.canal
     }
+
+    /// The canal's edge (m): centres of canal pixels with a wall pixel beside them, sampled
+    /// every `step` pixels in both directions (for drawing the outline).
+    pub fn outline_m(&self, step: usize) -> Vec<Vector2<f64>> {
+        let step = step.max(1);
+        let (w, h) = (i64::from(self.width()), i64::from(self.height()));
+        let mut points = Vec::new();
+        for row in (0..h).step_by(step) {
+            for col in (0..w).step_by(step) {
+                let edge = self.is_canal_px(col, row)
+                    && [(1, 0), (-1, 0), (0, 1), (0, -1)]
+                        .iter()
+                        .any(|(dc, dr)| !self.is_canal_px(col + dc, row + dr));
+                if edge {
+                    points.push(self.geometry.px_to_world(col as f64, row as f64));
+                }
+            }
+        }
+        points
+    }
 }
 
 /// What [`squared_distance_px`] returns where no source pixel exists.

@@ -647,6 +647,171 @@ pub struct Heartbeat {
     pub wall_time_ns: u64,
 }
 
+/// Most waypoints one operator request carries.
+pub const MAX_OPERATOR_WAYPOINTS: usize = 32;
+
+/// What the operator asks of the running set (`millinav ctl`).
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OperatorVerb {
+    /// Report the state; changes nothing.
+    Status = 1,
+    /// Plan from the current pose to `waypoints_m[0]` on the canal mask and follow it.
+    Goto = 2,
+    /// Follow the current pose → `waypoints_m[..waypoint_count]`.
+    Waypoints = 3,
+    /// Hold the current position.
+    Pause = 4,
+    /// Continue the path held by `Pause`.
+    Resume = 5,
+    /// Allow coil currents again (holding position until `Resume` or a new path).
+    Arm = 6,
+    /// Zero the coil currents until `Arm`.
+    Disarm = 7,
+    /// Zero the coil currents, latched until `Arm`.
+    EStop = 8,
+    /// End the run (answered by the supervisor, which stops the set safe-state first).
+    Stop = 9,
+}
+
+impl OperatorVerb {
+    pub const ALL: [OperatorVerb; 9] = [
+        Self::Status,
+        Self::Goto,
+        Self::Waypoints,
+        Self::Pause,
+        Self::Resume,
+        Self::Arm,
+        Self::Disarm,
+        Self::EStop,
+        Self::Stop,
+    ];
+
+    pub fn from_u32(value: u32) -> Option<Self> {
+        Self::ALL.into_iter().find(|v| *v as u32 == value)
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Status => "status",
+            Self::Goto => "goto",
+            Self::Waypoints => "waypoints",
+            Self::Pause => "pause",
+            Self::Resume => "resume",
+            Self::Arm => "arm",
+            Self::Disarm => "disarm",
+            Self::EStop => "estop",
+            Self::Stop => "stop",
+        }
+    }
+}
+
+/// The operator's state as control keeps it.
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OperatorState {
+    /// Following the path.
+    Tracking = 1,
+    /// Holding position (coils on).
+    Paused = 2,
+    /// Coils at zero until `Arm`.
+    Disarmed = 3,
+    /// Coils at zero, latched, until `Arm`.
+    EStopped = 4,
+    /// The set is shutting down (after `Stop`).
+    Stopping = 5,
+}
+
+impl OperatorState {
+    pub fn from_u32(value: u32) -> Option<Self> {
+        [
+            Self::Tracking,
+            Self::Paused,
+            Self::Disarmed,
+            Self::EStopped,
+            Self::Stopping,
+        ]
+        .into_iter()
+        .find(|s| *s as u32 == value)
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Tracking => "tracking",
+            Self::Paused => "paused",
+            Self::Disarmed => "disarmed",
+            Self::EStopped => "emergency-stopped",
+            Self::Stopping => "stopping",
+        }
+    }
+}
+
+/// One operator request (`OPERATOR_REQUEST`); answered by an [`OperatorReply`] with the same
+/// `request_id`. A request sent again with the same id is answered again, not applied again.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[type_name("millinav::OperatorRequest.v3")]
+pub struct OperatorRequest {
+    pub request_id: u64,
+    /// An `OperatorVerb` discriminant.
+    pub verb: u32,
+    pub waypoint_count: u32,
+    /// World positions, m: `Goto` uses the first, `Waypoints` the first `waypoint_count`.
+    pub waypoints_m: [[f64; 2]; MAX_OPERATOR_WAYPOINTS],
+}
+
+/// Control's answer to an [`OperatorRequest`] (`OPERATOR_REPLY`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[type_name("millinav::OperatorReply.v3")]
+pub struct OperatorReply {
+    pub request_id: u64,
+    /// 1 = done, 0 = refused (nothing changed).
+    pub accepted: Flag,
+    /// Sent as 0, ignored.
+    pub reserved: [u8; 3],
+    /// The `OperatorState` after the request.
+    pub state: u32,
+    /// Last measured position, m (NaN before the first pose).
+    pub position_m: [f64; 2],
+    /// Where the current path ends, m.
+    pub target_m: [f64; 2],
+    /// UTF-8, NUL-padded: what was done, or why it was refused. Read it with
+    /// [`OperatorReply::text`].
+    pub message: [u8; 160],
+}
+
+impl OperatorReply {
+    /// A reply with `message` (cut at a character boundary to fit).
+    pub fn new(request_id: u64, accepted: bool, state: OperatorState, message: &str) -> Self {
+        let mut bytes = [0u8; 160];
+        let mut end = message.len().min(bytes.len());
+        while !message.is_char_boundary(end) {
+            end -= 1;
+        }
+        bytes[..end].copy_from_slice(&message.as_bytes()[..end]);
+        Self {
+            request_id,
+            accepted: if accepted { Flag::TRUE } else { Flag::FALSE },
+            reserved: [0; 3],
+            state: state as u32,
+            position_m: [f64::NAN; 2],
+            target_m: [f64::NAN; 2],
+            message: bytes,
+        }
+    }
+
+    /// The message up to its first NUL (invalid UTF-8 shown replaced).
+    pub fn text(&self) -> String {
+        let end = self
+            .message
+            .iter()
+            .position(|&b| b == 0)
+            .unwrap_or(self.message.len());
+        String::from_utf8_lossy(&self.message[..end]).into_owned()
+    }
+}
+
 /// Pins a payload's size, alignment and every field's byte offset at compile time: a change
 /// that moves a byte fails the build here, and `CONTRACT.md` (which lists the same numbers for
 /// foreign readers) must change with it, together with `CONTRACT_VERSION`.
@@ -693,6 +858,13 @@ assert_layout!(PlantTruth, size 232, align 8, {
 });
 assert_layout!(Heartbeat, size 40, align 8, {
     service @ 0, pid @ 4, incarnation @ 8, cycles @ 16, deadline_misses @ 24, wall_time_ns @ 32,
+});
+assert_layout!(OperatorRequest, size 528, align 8, {
+    request_id @ 0, verb @ 8, waypoint_count @ 12, waypoints_m @ 16,
+});
+assert_layout!(OperatorReply, size 208, align 8, {
+    request_id @ 0, accepted @ 8, reserved @ 9, state @ 12, position_m @ 16, target_m @ 32,
+    message @ 48,
 });
 
 /// The processes of the set.
@@ -751,6 +923,8 @@ pub mod services {
     pub const COIL_STATUS: &str = "millinav/coilbus/status";
     pub const PLANT_TRUTH: &str = "millinav/plant/truth";
     pub const HEALTH: &str = "millinav/health";
+    pub const OPERATOR_REQUEST: &str = "millinav/operator/request";
+    pub const OPERATOR_REPLY: &str = "millinav/operator/reply";
 
     /// Name of the event service that announces new samples on `data_service`.
     pub fn event_service_of(data_service: &str) -> String {
@@ -799,6 +973,8 @@ mod tests {
             type_name::<CoilStatus>(),
             type_name::<PlantTruth>(),
             type_name::<Heartbeat>(),
+            type_name::<OperatorRequest>(),
+            type_name::<OperatorReply>(),
         ];
         let suffix = format!(".v{CONTRACT_VERSION}");
         for name in names {

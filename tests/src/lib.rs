@@ -32,13 +32,19 @@ pub struct RunSet {
 impl RunSet {
     /// Writes `scenario_toml` into a fresh run directory and starts the supervisor on it.
     pub fn start(name: &str, scenario_toml: &str) -> anyhow::Result<Self> {
-        Self::start_with(name, scenario_toml, None)
+        Self::start_with(name, scenario_toml, None, &[])
+    }
+
+    /// Like [`RunSet::start`] with more `millinav run` arguments (e.g. `--session`).
+    pub fn start_with_args(name: &str, scenario_toml: &str, args: &[&str]) -> anyhow::Result<Self> {
+        Self::start_with(name, scenario_toml, None, args)
     }
 
     fn start_with(
         name: &str,
         scenario_toml: &str,
         namespace: Option<(&str, &Path)>,
+        extra_args: &[&str],
     ) -> anyhow::Result<Self> {
         let base =
             std::env::temp_dir().join(format!("millinav-test-{}-{name}", std::process::id()));
@@ -61,6 +67,7 @@ impl RunSet {
             .arg("--run-dir")
             .arg(&run_dir)
             .args(["--viewer", "none", "--max-wall-s", "300"])
+            .args(extra_args)
             .arg("--iox-prefix")
             .arg(&iox_prefix)
             .arg("--iox-root")
@@ -87,6 +94,7 @@ impl RunSet {
             name,
             scenario_toml,
             Some((&previous.iox_prefix, &previous.iox_root)),
+            &[],
         )?;
         run.name = name.to_owned();
         Ok(run)

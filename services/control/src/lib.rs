@@ -6,13 +6,16 @@
 pub mod coil_gains;
 pub mod controllers;
 pub mod latency;
+pub mod operator;
 pub mod reference;
+pub mod rig3d;
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use std::sync::Arc;
 
+use anyhow::Context;
 use fieldmaps::allocation::{
     actuation_matrix_from, allocate_constrained_rated, allocate_constrained_slewed,
     allocate_limited_rated, clamp_to_ratings, CoilRatings, ConstrainedSettings,
@@ -31,7 +34,8 @@ use millinav_kit::{ConfigContext, ConfigError, Runtime, ServiceLoop};
 use nalgebra::{DVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 use shm_schemas::{
-    deadlines, services, zone, CoilCommand, ControlMode, FlowEstimate, FrameStamp, Pose, MAX_COILS,
+    deadlines, services, zone, CoilCommand, ControlMode, Flag, FlowEstimate, FrameStamp,
+    OperatorReply, OperatorRequest, OperatorState, OperatorVerb, Pose, MAX_COILS,
 };
 
 use crate::coil_gains::{CoilGainEstimator, GainEstimationConfig, GainUpdate};
@@ -40,6 +44,7 @@ use crate::controllers::{
     PidGains, SmcGains,
 };
 use crate::latency::{LatencyConfig, StatePredictor};
+use crate::operator::{Operator, OperatorEventRow};
 use crate::reference::Reference;
 
 /// Allowance on top of `max_speed_mps · Δt` before a pose counts as a jump, so that
@@ -100,6 +105,9 @@ pub struct ControlConfig {
     /// the magnet's heading, since F = (m·∇)B. Once the force is within reach again the field
     /// turns back toward `field_heading_deg` as far as the force stays within reach.
     pub field_heading_turn_deg: Option<f64>,
+    /// Wall clearance of the paths `millinav ctl goto` plans (A* on the canal mask), mm. The
+    /// paper's 5 mm suits its heart phantom; a narrower vessel needs less (vessel8: 3).
+    pub replan_clearance_mm: f64,
 }
 
 /// Candidate orientation fields are this far apart when the heading may turn.
@@ -130,6 +138,7 @@ impl Default for ControlConfig {
             max_current_slew_a_per_s: None,
             gain_estimation: GainEstimationConfig::default(),
             field_heading_turn_deg: None,
+            replan_clearance_mm: fieldmaps::phantom::PLANNER_CLEARANCE_M * 1e3,
         }
     }
 }
@@ -972,6 +981,42 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
     }
 }
 
+/// One operator request and its answer, into `operator_events.csv` (flushed: an operator reads
+/// it while the run goes on) and the recording.
+fn log_operator(
+    rec: &rerun::RecordingStream,
+    events: &mut RunLogWriter<OperatorEventRow>,
+    request: &OperatorRequest,
+    reply: &OperatorReply,
+    now_s: f64,
+) -> anyhow::Result<()> {
+    let verb = OperatorVerb::from_u32(request.verb).map_or("unknown", OperatorVerb::name);
+    let state = OperatorState::from_u32(reply.state).map_or("unknown", OperatorState::name);
+    let accepted = reply.accepted == Flag::TRUE;
+    let row = OperatorEventRow {
+        time_s: now_s,
+        request_id: request.request_id,
+        verb: verb.to_string(),
+        accepted,
+        state: state.to_string(),
+        message: reply.text(),
+    };
+    events.append_now(&row)?;
+    let _ = rec.log(
+        "operator/events",
+        &rerun::TextLog::new(format!(
+            "{verb}: {} ({state}): {}",
+            if accepted { "done" } else { "refused" },
+            row.message
+        )),
+    );
+    tracing::info!(verb, accepted, state, message = %row.message, "operator request");
+    Ok(())
+}
+
+/// The 3D rig view is drawn every this many frames (10 Hz at 100 Hz).
+const RIG3D_EVERY: u64 = 10;
+
 /// `control.csv` is flushed every this many frames.
 const DECISIONS_PER_FLUSH: u64 = 50;
 
@@ -1037,10 +1082,21 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow
     let mut control = setup.into_loop(scenario.viscosity_pa_s(), rt.env.incarnation);
     tracing::info!(controller = control.controller_name(), "control ready");
     log_planned_path(&rt.rec, &control.reference);
+    rig3d::log_static(&rt.rec, &control.rig);
     let poses = Inbox::<Pose>::new(&rt.node, services::POSE)?;
     let flows = Inbox::<FlowEstimate>::new(&rt.node, services::FLOW)?;
     let commands = Outbox::<CoilCommand>::new(&rt.node, services::COMMAND)?;
+    let requests = Inbox::<OperatorRequest>::new(&rt.node, services::OPERATOR_REQUEST)?;
+    let replies = Outbox::<OperatorReply>::new(&rt.node, services::OPERATOR_REPLY)?;
+    let mut operator = Operator::new(
+        &control.rig,
+        millinav_kit::in_session(),
+        control.config.replan_clearance_mm * 1e-3,
+    )
+    .context("the rig's canal mask for planning")?;
     std::fs::create_dir_all(&rt.env.run_dir)?;
+    let mut operator_events = RunLogWriter::<OperatorEventRow>::in_run_dir(&rt.env.run_dir)?;
+    let mut last_now_ns = 0;
     // Append: a restarted control continues the same log.
     let mut decisions = RunLogWriter::<ControlRow>::in_run_dir(&rt.env.run_dir)?;
     let mut flow_cache = Vec::new();
@@ -1055,13 +1111,30 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow
     let mut service_loop = ServiceLoop::new();
     let pose_input = service_loop.input_with_deadline(&poses, deadlines::POSE);
     service_loop.output(&commands);
+    service_loop.output(&replies);
     service_loop.run(&mut rt.heartbeat, |wake| {
         if wake.missed_deadline(pose_input) {
             tracing::debug!("no pose within {:?}", deadlines::POSE);
         }
+        for request in requests.receive_all()? {
+            let now_ns = if realtime {
+                rt.env.run_clock_ns()
+            } else {
+                last_now_ns
+            };
+            let now_s = now_ns as f64 * 1e-9;
+            if let Some(reply) = operator.handle(&request, &mut control.reference, now_s) {
+                replies.send(reply)?;
+                log_operator(&rt.rec, &mut operator_events, &request, &reply, now_s)?;
+            }
+        }
         let Some(pose) = poses.latest()? else {
             return Ok(());
         };
+        operator.observe(
+            pose.is_usable()
+                .then(|| Vector2::new(pose.position_m[0], pose.position_m[1])),
+        );
         let flow = flow_for(
             &flows,
             &mut flow_cache,
@@ -1086,7 +1159,10 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow
         } else {
             pose.stamp.grab_time_ns
         };
-        let decision = if last_flow.elapsed() > FLOW_LOST_AFTER {
+        last_now_ns = now_ns;
+        let decision = if let Some(why) = operator.blocks_currents() {
+            control.safe_at(&pose, why, now_ns)
+        } else if last_flow.elapsed() > FLOW_LOST_AFTER {
             control.safe_at(&pose, "flow estimates lost", now_ns)
         } else {
             control.step_at(&pose, flow.as_ref(), now_ns)
@@ -1099,6 +1175,18 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: ControlSetup) -> anyhow
         }
         recording::set_time(&rt.rec, pose.stamp.capture_time_ns, pose.stamp.seq);
         log_decision(&rt.rec, &pose, &decision);
+        if pose.stamp.seq.is_multiple_of(RIG3D_EVERY) {
+            let robot = &control.rig.robot;
+            rig3d::log_state(
+                &rt.rec,
+                &control.rig,
+                control.coil_ids(),
+                &decision.command,
+                &pose,
+                robot.length_m,
+                robot.radius_m(),
+            );
+        }
         log_coil_gains(&rt.rec, &control, decision.gain_update);
         anyhow::Ok(())
     })?;

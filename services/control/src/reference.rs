@@ -73,6 +73,29 @@ impl Reference {
         })
     }
 
+    /// A reference that stays at `position_m` (a hold): a 1 nm path, finished at once.
+    pub fn hold(position_m: Vector2<f64>, speed_mps: f64) -> Self {
+        const HOLD_PATH_M: f64 = 1e-9;
+        Self {
+            waypoints: vec![position_m, position_m + Vector2::new(HOLD_PATH_M, 0.0)],
+            cumulative_m: vec![0.0, HOLD_PATH_M],
+            speed_mps,
+            start_time_s: 0.0,
+        }
+    }
+
+    /// The same path started `by_s` later (resuming after a pause of that long).
+    pub fn delayed(&self, by_s: f64) -> Self {
+        Self {
+            start_time_s: self.start_time_s + by_s,
+            ..self.clone()
+        }
+    }
+
+    pub fn speed_mps(&self) -> f64 {
+        self.speed_mps
+    }
+
     pub fn length_m(&self) -> f64 {
         *self.cumulative_m.last().unwrap_or(&0.0)
     }

@@ -39,6 +39,9 @@ pub mod env_vars {
     pub const RECORDING_ID: &str = "MILLINAV_RECORDING_ID";
     /// Restart count of this process, set by the supervisor (0 on first start).
     pub const INCARNATION: &str = "MILLINAV_INCARNATION";
+    /// `1`: a session (`millinav run --session`): control starts disarmed, the twin runs
+    /// until the operator or a signal stops the set.
+    pub const SESSION: &str = "MILLINAV_SESSION";
     /// `1`: lock the process's memory at start (`mlockall`), set from the launch file.
     pub const LOCK_MEMORY: &str = "MILLINAV_LOCK_MEMORY";
     /// CLOCK_MONOTONIC nanoseconds at run start: the origin of the real-time run clock.
@@ -249,4 +252,9 @@ fn lock_memory_if_asked() {
             "memory not locked: mlockall failed: {e} (needs root, CAP_IPC_LOCK or `ulimit -l`)"
         ),
     }
+}
+
+/// Whether this process runs in a session (`MILLINAV_SESSION=1`).
+pub fn in_session() -> bool {
+    std::env::var(env_vars::SESSION).as_deref() == Ok("1")
 }

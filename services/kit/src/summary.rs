@@ -4,7 +4,7 @@
 //! true position against the reference of the same frame). The completion rule is the one the
 //! experiment tables use ([`tracking`]).
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -101,8 +101,10 @@ pub struct RunSummary {
     pub run_dir: PathBuf,
     pub ending: String,
     pub duration_s: f64,
-    /// Control decisions (one per frame control answered).
+    /// Frames control answered (distinct frames).
     pub frames: usize,
+    /// Control decisions (a frame shown twice is answered twice).
+    pub decisions: usize,
     /// Frames whose pose control used.
     pub poses_used: usize,
     /// Measured pose against the reference, as control saw it (frames with a used pose).
@@ -142,8 +144,12 @@ impl RunSummary {
         let truth: Option<Vec<TruthRow>> = rows_if_present(run_dir)?;
         let contacts: Option<Vec<ContactRow>> = rows_if_present(run_dir)?;
         let reference_at = |row: &ControlRow| (row.reference_x_m, row.reference_y_m);
-        let seen: Vec<ErrorSample> = control
-            .iter()
+        // The last decision for each frame (a frame shown twice, or a restarted control, may
+        // be answered more than once), in frame order.
+        let by_frame: BTreeMap<u64, &ControlRow> =
+            control.iter().map(|r| (r.frame_seq, r)).collect();
+        let seen: Vec<ErrorSample> = by_frame
+            .values()
             .filter(|r| r.pose_used && r.measured_x_m.is_finite() && r.measured_y_m.is_finite())
             .map(|r| {
                 let (rx, ry) = reference_at(r);
@@ -154,9 +160,6 @@ impl RunSummary {
                 }
             })
             .collect();
-        // The last decision for each frame (a restarted control may answer one twice).
-        let by_frame: HashMap<u64, &ControlRow> =
-            control.iter().map(|r| (r.frame_seq, r)).collect();
         let true_errors = truth.as_ref().map(|rows| {
             let mut last_seq = None;
             rows.iter()
@@ -188,7 +191,8 @@ impl RunSummary {
             run_dir: run_dir.to_owned(),
             ending: facts.ending.clone(),
             duration_s: facts.duration_s,
-            frames: control.len(),
+            frames: by_frame.len(),
+            decisions: control.len(),
             poses_used: seen.len(),
             as_control_saw: (!seen.is_empty()).then(|| tracking(&seen)),
             truth: true_errors.filter(|e| !e.is_empty()).map(|e| tracking(&e)),

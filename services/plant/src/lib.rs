@@ -339,9 +339,11 @@ const BOARD_POLL: Duration = Duration::from_millis(5);
 /// duration or SIGINT / SIGTERM.
 pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: PlantSetup) -> anyhow::Result<()> {
     let mut twin = Twin::start(rt, scenario, setup)?;
+    let session = millinav_kit::in_session();
     tracing::info!(
         mode = ?scenario.run.mode,
         duration_s = scenario.run.duration_s,
+        session,
         "plant running"
     );
     loop {
@@ -362,7 +364,8 @@ pub fn run(rt: &mut Runtime, scenario: &Scenario, setup: PlantSetup) -> anyhow::
         }
         twin.show_frame(&rt.rec, run_time_ns)?;
         keep_alive(&mut rt.heartbeat, &[&twin.frames, &twin.truth_out]);
-        if twin.state.time_s >= scenario.run.duration_s {
+        // A session runs until the operator (or a signal) stops the set.
+        if twin.state.time_s >= scenario.run.duration_s && !session {
             twin.log_completion();
             break;
         }
@@ -441,7 +444,14 @@ impl<'s> Twin<'s> {
         let truth_csv = TruthCsv::create(&rt.env.run_dir.join(TRUTH_CSV))?;
         let _ = rt.rec.log_static(
             "world/canal",
-            &millinav_kit::rerun::Points2D::new(canal_outline(&camera)).with_radii([0.15]),
+            &millinav_kit::rerun::Points2D::new(
+                rig.phantom
+                    .mask
+                    .outline_m(2)
+                    .iter()
+                    .map(|p| [(p.x * 1e3) as f32, (p.y * 1e3) as f32]),
+            )
+            .with_radii([0.15]),
         );
         Ok(Self {
             scenario,
@@ -762,27 +772,6 @@ impl ContactLog {
 }
 
 /// Canal boundary pixels as world points (mm), for the recording's map layer.
-fn canal_outline(camera: &Camera) -> Vec<[f32; 2]> {
-    let g = &camera.geometry;
-    let (w, h) = (g.width_px as usize, g.height_px as usize);
-    let mut points = Vec::new();
-    for row in (1..h - 1).step_by(2) {
-        for col in (1..w - 1).step_by(2) {
-            let inside = camera.canal_mask[row * w + col] > 0;
-            let edge = inside
-                && (camera.canal_mask[row * w + col + 1] == 0
-                    || camera.canal_mask[(row + 1) * w + col] == 0
-                    || camera.canal_mask[row * w + col - 1] == 0
-                    || camera.canal_mask[(row - 1) * w + col] == 0);
-            if edge {
-                let p = g.px_to_world(col as f64, row as f64);
-                points.push([(p.x * 1e3) as f32, (p.y * 1e3) as f32]);
-            }
-        }
-    }
-    points
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -3,6 +3,7 @@
 //! nodes before a restart, and shuts down safe-state first. Everything it does is appended to
 //! `<run_dir>/supervisor_events.csv` so runs and tests can be audited afterwards.
 
+pub mod ctl;
 pub mod launch;
 pub mod preflight;
 pub mod realtime;
@@ -18,7 +19,7 @@ use anyhow::{bail, Context};
 use millinav_kit::iceoryx2::port::listener::Listener;
 use millinav_kit::iceoryx2::prelude::*;
 use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
-use millinav_kit::ports::{heartbeat_listener, Inbox};
+use millinav_kit::ports::{heartbeat_listener, Inbox, Outbox};
 use millinav_kit::runlog::{RunLogWriter, SupervisorEventRow};
 use millinav_kit::scenario::Scenario;
 use millinav_kit::summary::{RunFacts, RunSummary};
@@ -26,7 +27,8 @@ use millinav_kit::{clock, env_vars, recording, rerun, Runtime};
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
 use shm_schemas::{
-    board_state_name, deadlines, services, BoardFault, CoilStatus, Heartbeat, ServiceId,
+    board_state_name, deadlines, services, BoardFault, CoilStatus, Heartbeat, OperatorReply,
+    OperatorRequest, OperatorState, OperatorVerb, ServiceId,
 };
 
 use crate::launch::{LaunchFile, ProcessSpec};
@@ -98,6 +100,8 @@ pub struct SupervisorOptions {
     pub iox_root: PathBuf,
     /// Stop the run after this much wall time even if the plant has not finished.
     pub max_wall_time: Duration,
+    /// A session: control starts disarmed and the twin runs until `ctl stop` or a signal.
+    pub session: bool,
 }
 
 /// Appends timestamped events to `supervisor_events.csv`.
@@ -188,6 +192,8 @@ impl ManagedProcess {
 enum Ending {
     RunComplete,
     Signal,
+    /// `millinav ctl stop`.
+    OperatorStop,
     WallTimeLimit,
     /// A child exited with `EXIT_CONFIG`: stop the set and say why.
     ConfigError(FailFast),
@@ -526,6 +532,9 @@ struct Heartbeats {
     health: Inbox<Heartbeat>,
     /// coilbus's status: the coil-driver board's state, faults and heat.
     coil_status: Inbox<CoilStatus>,
+    /// Operator requests: the supervisor answers `stop` (control the rest).
+    operator: Inbox<OperatorRequest>,
+    operator_replies: Outbox<OperatorReply>,
 }
 
 /// Runs the set until the plant finishes, a signal arrives, a child rejects its
@@ -541,6 +550,9 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
     }
     let rt = Runtime::start(ServiceId::Supervisor)?;
     let started = Instant::now();
+    if let Err(e) = viewer_layout().send(&rt.rec, Default::default()) {
+        tracing::warn!("could not send the viewer layout: {e}");
+    }
     tracing::info!(
         run_dir = %plan.run_dir.display(),
         scenario = %plan.scenario_path.display(),
@@ -574,6 +586,39 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
     )
 }
 
+/// The viewer's layout, sent with the recording: camera with its overlays and the top view
+/// with paths and flow on the left; the 3D rig, the control series (error, force, d̂, currents)
+/// and health and events on the right.
+fn viewer_layout() -> rerun::blueprint::Blueprint {
+    use rerun::blueprint::{
+        Blueprint, Horizontal, Spatial2DView, Spatial3DView, Tabs, TextLogView, TimeSeriesView,
+        Vertical,
+    };
+    let series = |name: &str, origin: &str| TimeSeriesView::new(name).with_origin(origin).into();
+    Blueprint::new(Horizontal::new([
+        Vertical::new([
+            Spatial2DView::new("camera").with_origin("/camera").into(),
+            Spatial2DView::new("top view (mm)")
+                .with_origin("/world")
+                .into(),
+        ])
+        .into(),
+        Vertical::new([
+            Spatial3DView::new("rig (mm)").with_origin("/rig3d").into(),
+            Tabs::new([
+                series("error (mm)", "/control/error_mm"),
+                series("force (N)", "/control/force_des_n"),
+                series("d̂ (N)", "/control/d_hat_n"),
+                series("currents (A)", "/control/current_a"),
+                series("health", "/health"),
+            ])
+            .into(),
+            TextLogView::new("events").with_origin("/supervisor").into(),
+        ])
+        .into(),
+    ]))
+}
+
 /// What the run summary needs from `run` beyond the supervisor.
 struct SummaryContext {
     started: Instant,
@@ -598,6 +643,7 @@ impl Supervisor {
             ending: match ending {
                 Ok(Ending::RunComplete) => "run complete".into(),
                 Ok(Ending::Signal) => "stopped by a signal (Ctrl-C or SIGTERM)".into(),
+                Ok(Ending::OperatorStop) => "stopped by the operator (millinav ctl stop)".into(),
                 Ok(Ending::WallTimeLimit) => {
                     format!("wall-time limit ({:?}) reached", self.options.max_wall_time)
                 }
@@ -691,6 +737,9 @@ fn run_environment(
     if let Some(url) = viewer_url {
         env.push((env_vars::RERUN_CONNECT.to_string(), url.clone()));
     }
+    if options.session {
+        env.push((env_vars::SESSION.to_string(), "1".to_string()));
+    }
     env
 }
 
@@ -744,10 +793,14 @@ impl Heartbeats {
             .collect::<anyhow::Result<_>>()?;
         let health = Inbox::<Heartbeat>::new(&rt.node, services::HEALTH)?;
         let coil_status = Inbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
+        let operator = Inbox::<OperatorRequest>::new(&rt.node, services::OPERATOR_REQUEST)?;
+        let operator_replies = Outbox::<OperatorReply>::new(&rt.node, services::OPERATOR_REPLY)?;
         Ok(Self {
             listeners,
             health,
             coil_status,
+            operator,
+            operator_replies,
         })
     }
 }
@@ -807,7 +860,9 @@ fn finish(
              coils at zero (the reason is in {}/coilbus_link.csv and logs/coilbus.log)",
             run_dir.display()
         ),
-        Ending::RunComplete | Ending::Signal | Ending::WallTimeLimit => Ok(()),
+        Ending::RunComplete | Ending::Signal | Ending::OperatorStop | Ending::WallTimeLimit => {
+            Ok(())
+        }
     }
 }
 
@@ -866,6 +921,24 @@ fn monitor(
                 .deadline_misses
                 .insert((beat.service, beat.incarnation), beat.deadline_misses);
             latest_health.insert(beat.service, beat);
+        }
+        for request in heartbeats.operator.receive_all()? {
+            if request.verb == OperatorVerb::Stop as u32 {
+                let reply = OperatorReply::new(
+                    request.request_id,
+                    true,
+                    OperatorState::Stopping,
+                    "stopping the set: control and coilbus first, coils to zero",
+                );
+                heartbeats.operator_replies.update_connections();
+                heartbeats.operator_replies.send(reply)?;
+                supervisor.events.record(
+                    ServiceId::Supervisor,
+                    "operator_stop",
+                    "millinav ctl stop",
+                );
+                return Ok(Ending::OperatorStop);
+            }
         }
         for status in heartbeats.coil_status.receive_all()? {
             if let Some(fault) = board.observe(&status, &mut supervisor.events, &rt.rec) {

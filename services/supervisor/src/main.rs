@@ -43,20 +43,70 @@ enum Commands {
         /// under it, and their paths (root + prefix + a hash) must fit in 108 bytes.
         #[arg(long, default_value = "/tmp/millinav/iceoryx2")]
         iox_root: PathBuf,
-        /// Stop after this many wall-clock seconds even if the run has not finished.
-        #[arg(long, default_value_t = 600.0)]
-        max_wall_s: f64,
+        /// Stop after this many wall-clock seconds even if the run has not finished (default
+        /// 600; none in a session).
+        #[arg(long)]
+        max_wall_s: Option<f64>,
+        /// A session: control starts disarmed (`millinav ctl arm`), the twin runs past the
+        /// scenario's duration, and the set runs until `millinav ctl stop` or Ctrl-C.
+        #[arg(long)]
+        session: bool,
         /// Directory of the service executables (default: next to this executable).
         #[arg(long)]
         bin_dir: Option<PathBuf>,
     },
+    /// Send an operator command to a running set (give the --iox-prefix and --iox-root of its
+    /// `millinav run`). Prints control's answer and the state it produced; exits 1 when control
+    /// refused the command (nothing changed), 2 when no answer came.
+    Ctl {
+        /// iceoryx2 file prefix of the running set.
+        #[arg(long, default_value = "millinav_")]
+        iox_prefix: String,
+        /// iceoryx2 root directory of the running set.
+        #[arg(long, default_value = "/tmp/millinav/iceoryx2")]
+        iox_root: PathBuf,
+        /// Seconds to wait for control's answer.
+        #[arg(long, default_value_t = 3.0)]
+        timeout_s: f64,
+        #[command(subcommand)]
+        verb: CtlVerb,
+    },
+}
+
+#[derive(Subcommand)]
+enum CtlVerb {
+    /// Plan from the robot's pose to (X, Y) in mm with the A* planner on the rig's canal mask
+    /// (clearance: the scenario's `[control] replan_clearance_mm`, default 5) and follow it.
+    Goto {
+        #[arg(allow_negative_numbers = true)]
+        x_mm: f64,
+        #[arg(allow_negative_numbers = true)]
+        y_mm: f64,
+    },
+    /// Follow the path in FILE (TOML: `waypoints_mm = [[x, y], ...]`, mm, at most 32) from the
+    /// robot's pose.
+    Waypoints { file: PathBuf },
+    /// Hold the current position.
+    Pause,
+    /// Continue the paused path where it stopped.
+    Resume,
+    /// Allow coil currents again; the robot holds position until resume or a new path.
+    Arm,
+    /// Zero the coil currents until arm.
+    Disarm,
+    /// Zero the coil currents, latched until arm.
+    Estop,
+    /// Report the state, the robot's position and where the path ends.
+    Status,
+    /// End the run: the supervisor stops the set safe-state first and writes the summary.
+    Stop,
 }
 
 /// Configuration errors (scenario, launch file, a child's check or exit) end with `EX_CONFIG`,
 /// like the services themselves; anything else with 1.
 fn main() -> ExitCode {
     match run_cli(Cli::parse()) {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(code) => code,
         Err(error) => {
             // The message and its causes, without a backtrace: this is what a user reads.
             eprintln!("Error: {error:#}");
@@ -73,8 +123,52 @@ fn main() -> ExitCode {
     }
 }
 
-fn run_cli(cli: Cli) -> anyhow::Result<()> {
+fn run_cli(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
+        Commands::Ctl {
+            iox_prefix,
+            iox_root,
+            timeout_s,
+            verb,
+        } => {
+            use millinav_supervisor::ctl;
+            use shm_schemas::{Flag, OperatorVerb};
+            if !(timeout_s.is_finite() && timeout_s > 0.0) {
+                anyhow::bail!("--timeout-s must be a positive number of seconds");
+            }
+            let (verb, goal, file) = match verb {
+                CtlVerb::Goto { x_mm, y_mm } => (OperatorVerb::Goto, Some([x_mm, y_mm]), None),
+                CtlVerb::Waypoints { file } => (OperatorVerb::Waypoints, None, Some(file)),
+                CtlVerb::Pause => (OperatorVerb::Pause, None, None),
+                CtlVerb::Resume => (OperatorVerb::Resume, None, None),
+                CtlVerb::Arm => (OperatorVerb::Arm, None, None),
+                CtlVerb::Disarm => (OperatorVerb::Disarm, None, None),
+                CtlVerb::Estop => (OperatorVerb::EStop, None, None),
+                CtlVerb::Status => (OperatorVerb::Status, None, None),
+                CtlVerb::Stop => (OperatorVerb::Stop, None, None),
+            };
+            let request = ctl::request(verb, goal, file.as_deref())?;
+            match ctl::send(
+                &request,
+                &iox_prefix,
+                &iox_root,
+                Duration::from_secs_f64(timeout_s),
+            ) {
+                Ok(reply) => {
+                    println!("{}", ctl::describe(verb, &reply));
+                    Ok(if reply.accepted == Flag::TRUE {
+                        ExitCode::SUCCESS
+                    } else {
+                        ExitCode::from(1)
+                    })
+                }
+                Err(e @ ctl::CtlError::NoAnswer(_)) => {
+                    eprintln!("Error: {e}");
+                    Ok(ExitCode::from(2))
+                }
+                Err(e) => Err(e.into()),
+            }
+        }
         Commands::Run {
             scenario,
             launch,
@@ -83,6 +177,7 @@ fn run_cli(cli: Cli) -> anyhow::Result<()> {
             iox_prefix,
             iox_root,
             max_wall_s,
+            session,
             bin_dir,
         } => {
             let launch = match launch {
@@ -103,9 +198,14 @@ fn run_cli(cli: Cli) -> anyhow::Result<()> {
                     .unwrap_or(0);
                 PathBuf::from("runs").join(format!("run-{secs}"))
             });
-            if !(max_wall_s.is_finite() && max_wall_s > 0.0) {
-                anyhow::bail!("--max-wall-s must be a positive number of seconds");
-            }
+            let max_wall_time = match (max_wall_s, session) {
+                (Some(s), _) if !(s.is_finite() && s > 0.0) => {
+                    anyhow::bail!("--max-wall-s must be a positive number of seconds")
+                }
+                (Some(s), _) => Duration::from_secs_f64(s),
+                (None, true) => Duration::MAX,
+                (None, false) => Duration::from_secs(600),
+            };
             millinav_supervisor::run(SupervisorOptions {
                 scenario,
                 launch,
@@ -114,8 +214,10 @@ fn run_cli(cli: Cli) -> anyhow::Result<()> {
                 viewer,
                 iox_prefix,
                 iox_root,
-                max_wall_time: Duration::from_secs_f64(max_wall_s),
-            })
+                max_wall_time,
+                session,
+            })?;
+            Ok(ExitCode::SUCCESS)
         }
     }
 }

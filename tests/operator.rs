@@ -1,0 +1,198 @@
+//! `millinav ctl` against a running twin: status, a goal outside the canal refused with nothing
+//! changed, pause holds position, goto replans (A*) and the robot gets there, estop zeroes the
+//! coils and latches (resume refused) until arm, and every answer is in `operator_events.csv`.
+
+use std::path::Path;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use millinav_kit::runlog::{self, ControlRow, RunLogRow};
+use millinav_tests::{bin_dir, scenario_text, RunSet};
+
+/// Runs `millinav ctl` against `run`'s set: (exit code, stdout + stderr).
+fn ctl(run: &RunSet, args: &[&str]) -> (i32, String) {
+    let out = Command::new(bin_dir().join("millinav"))
+        .arg("ctl")
+        .args(["--iox-prefix", &run.iox_prefix, "--iox-root"])
+        .arg(&run.iox_root)
+        .args(["--timeout-s", "5"])
+        .args(args)
+        .output()
+        .expect("run millinav ctl");
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    println!("$ millinav ctl {}\n{text}", args.join(" "));
+    (out.status.code().unwrap_or(-1), text)
+}
+
+/// The complete rows of a log control is still writing (a last line cut mid-write is left out).
+fn rows_so_far<R: RunLogRow>(run_dir: &Path) -> Vec<R> {
+    let path = run_dir.join(R::FILE_NAME);
+    let text = std::fs::read_to_string(&path).unwrap_or_default();
+    let complete = &text[..text.rfind('\n').map_or(0, |i| i + 1)];
+    runlog::parse_rows(complete, &path).unwrap_or_default()
+}
+
+/// Where control last saw the robot (m) and its mode and largest command, from `control.csv`.
+fn last_seen(run: &RunSet) -> Option<ControlRow> {
+    rows_so_far::<ControlRow>(&run.run_dir)
+        .into_iter()
+        .rev()
+        .find(|r| r.measured_x_m.is_finite())
+}
+
+fn wait(s: f64) {
+    std::thread::sleep(Duration::from_secs_f64(s));
+}
+
+#[test]
+fn the_operator_drives_a_running_twin() {
+    let text = scenario_text(
+        90.0,
+        &[[-18.0, 12.0], [-12.0, 8.0], [-10.0, 4.0]],
+        2.0,
+        "[control]\ncontroller = \"pid\"\n",
+    );
+    let mut run = RunSet::start("operator", &text).expect("start run");
+    run.wait_for_frames(100, Duration::from_secs(60))
+        .expect("the loop runs");
+
+    let (code, out) = ctl(&run, &["status"]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("state: tracking"), "{out}");
+
+    // A goal outside the canal: refused with the reason, nothing changes.
+    let (code, out) = ctl(&run, &["goto", "40", "40"]);
+    assert_eq!(code, 1, "{out}");
+    assert!(
+        out.contains("REFUSED") && out.contains("state: tracking"),
+        "{out}"
+    );
+
+    // Pause: the robot holds where it is.
+    let (code, out) = ctl(&run, &["pause"]);
+    assert_eq!(code, 0, "{out}");
+    assert!(
+        out.contains("holding") && out.contains("state: paused"),
+        "{out}"
+    );
+    wait(1.5);
+    let a = last_seen(&run).expect("control rows");
+    wait(2.0);
+    let b = last_seen(&run).expect("control rows");
+    let drift_mm = (b.measured_x_m - a.measured_x_m).hypot(b.measured_y_m - a.measured_y_m) * 1e3;
+    assert!(
+        b.time_s > a.time_s + 1.0,
+        "control kept running: {a:?} {b:?}"
+    );
+    assert!(drift_mm < 0.3, "paused robot moved {drift_mm:.3} mm");
+
+    // Goto: a new A* path from the current pose, and the robot gets there.
+    let (code, out) = ctl(&run, &["goto", "-6", "-6"]);
+    assert_eq!(code, 0, "{out}");
+    assert!(
+        out.contains("following") && out.contains("state: tracking"),
+        "{out}"
+    );
+    let deadline = Instant::now() + Duration::from_secs(40);
+    let arrived = loop {
+        let seen = last_seen(&run).expect("control rows");
+        let off_mm = (seen.measured_x_m + 6e-3).hypot(seen.measured_y_m + 6e-3) * 1e3;
+        if off_mm < 1.0 {
+            break true;
+        }
+        if Instant::now() > deadline {
+            println!("last seen {seen:?}, {off_mm:.2} mm from the goal");
+            break false;
+        }
+        wait(0.5);
+    };
+    assert!(arrived, "the robot did not reach the goto goal");
+
+    // Estop: coils at zero, latched; resume is refused until arm.
+    let (code, out) = ctl(&run, &["estop"]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("emergency-stopped"), "{out}");
+    wait(1.5);
+    let after: Vec<ControlRow> = rows_so_far::<ControlRow>(&run.run_dir);
+    let last = after.last().expect("control rows");
+    assert_eq!(last.mode, shm_schemas::ControlMode::Safe as u32, "{last:?}");
+    assert_eq!(last.max_abs_current_a, 0.0, "{last:?}");
+    let (code, out) = ctl(&run, &["resume"]);
+    assert_eq!(code, 1, "{out}");
+    let (code, out) = ctl(&run, &["arm"]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("state: paused"), "{out}");
+
+    let status = run.stop(Duration::from_secs(30)).expect("stop");
+    assert!(status.success(), "supervisor exit {status}");
+    // Every answer is in the run's operator events, refusals included.
+    let events = std::fs::read_to_string(run.run_dir.join("operator_events.csv"))
+        .expect("operator_events.csv");
+    println!("{events}");
+    for (verb, accepted) in [
+        ("status", true),
+        ("goto", false),
+        ("pause", true),
+        ("goto", true),
+        ("estop", true),
+        ("resume", false),
+        ("arm", true),
+    ] {
+        assert!(
+            events
+                .lines()
+                .any(|l| l.contains(&format!(",{verb},{accepted},"))),
+            "no {verb} accepted={accepted} row\n{events}"
+        );
+    }
+}
+
+#[test]
+fn a_session_starts_disarmed_runs_past_its_duration_and_ends_on_ctl_stop() {
+    // 2 s of scenario: a session runs past it until the operator stops the set.
+    let text = scenario_text(
+        2.0,
+        &[[-18.0, 12.0], [-12.0, 8.0]],
+        2.0,
+        "[control]\ncontroller = \"pid\"\n",
+    );
+    let mut run = RunSet::start_with_args("session", &text, &["--session"]).expect("start run");
+    run.wait_for_frames(300, Duration::from_secs(60))
+        .expect("the twin runs past the scenario's 2 s");
+    let (code, out) = ctl(&run, &["status"]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("state: disarmed"), "{out}");
+    let rows: Vec<ControlRow> = rows_so_far(&run.run_dir);
+    let last = rows.last().expect("control rows");
+    assert_eq!(
+        last.mode,
+        shm_schemas::ControlMode::Safe as u32,
+        "disarmed: {last:?}"
+    );
+    assert_eq!(last.max_abs_current_a, 0.0);
+    let (code, out) = ctl(&run, &["arm"]);
+    assert_eq!(code, 0, "{out}");
+    wait(1.0);
+    let last = rows_so_far::<ControlRow>(&run.run_dir)
+        .last()
+        .cloned()
+        .expect("control rows");
+    assert_ne!(
+        last.mode,
+        shm_schemas::ControlMode::Safe as u32,
+        "armed: {last:?}"
+    );
+    let (code, out) = ctl(&run, &["stop"]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("stopping"), "{out}");
+    let status = run.wait(Duration::from_secs(30)).expect("the set ends");
+    assert!(status.success(), "supervisor exit {status}");
+    let summary = std::fs::read_to_string(run.run_dir.join("summary.json")).expect("summary");
+    assert!(summary.contains("stopped by the operator"), "{summary}");
+    let events = run.supervisor_events().expect("events");
+    assert!(events.iter().any(|e| e.event == "operator_stop"));
+}
