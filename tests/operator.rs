@@ -28,12 +28,9 @@ fn ctl(run: &RunSet, args: &[&str]) -> (i32, String) {
     (out.status.code().unwrap_or(-1), text)
 }
 
-/// The complete rows of a log control is still writing (a last line cut mid-write is left out).
+/// The rows of a log control is still writing (`read_rows` leaves out a line cut mid-write).
 fn rows_so_far<R: RunLogRow>(run_dir: &Path) -> Vec<R> {
-    let path = run_dir.join(R::FILE_NAME);
-    let text = std::fs::read_to_string(&path).unwrap_or_default();
-    let complete = &text[..text.rfind('\n').map_or(0, |i| i + 1)];
-    runlog::parse_rows(complete, &path).unwrap_or_default()
+    runlog::read_rows(&run_dir.join(R::FILE_NAME)).unwrap_or_default()
 }
 
 /// Where control last saw the robot (m) and its mode and largest command, from `control.csv`.

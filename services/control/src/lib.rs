@@ -857,6 +857,7 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
     at_least("field_magnitude_mt", config.field_magnitude_mt, 0.0, false)?;
     at_least("omega0_n_per_t", config.omega0_n_per_t, 0.0, true)?;
     at_least("field_row_weight", config.field_row_weight, 0.0, true)?;
+    at_least("replan_clearance_mm", config.replan_clearance_mm, 0.0, true)?;
     if !config.field_heading_deg.is_finite() {
         return Err(ConfigError::new(format!(
             "{} must be finite, got {}",
@@ -1356,6 +1357,11 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(error.contains("[control] max_speed_mps"), "{error}");
+
+        let error = check_config(&scenario_with("replan", "replan_clearance_mm = 0.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("[control] replan_clearance_mm"), "{error}");
 
         let error = check_config(&scenario_with("slew", "max_current_slew_a_per_s = 0.0"))
             .unwrap_err()
