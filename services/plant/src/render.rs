@@ -184,14 +184,7 @@ impl Camera {
         rng: &mut ChaCha8Rng,
         noise_std: f64,
     ) -> Self {
-        Self::build(
-            canal,
-            geometry,
-            rng,
-            noise_std,
-            CameraConfig::off(),
-            Palette::default(),
-        )
+        Self::with_palette(canal, geometry, rng, noise_std, Palette::default())
     }
 
     /// Like [`Camera::new`] with the scene in `palette`'s colours.

@@ -216,31 +216,13 @@ fn export_labelme(rig: &Rig, frames: usize, args: &Args) -> anyhow::Result<()> {
         ProgressStyle::with_template("frames [{bar:40}] {pos}/{len} {eta}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let style = args.style;
-    let mut cams: Vec<Camera> = (0..args.cameras.max(1))
-        .map(|_| {
-            let noise = rng.random_range(style.noise_range());
-            let palette = style.camera_palette(&mut rng);
-            Camera::with_palette(&rig.phantom.mask, geometry, &mut rng, noise, palette)
-        })
-        .collect();
-    let camera_palettes: Vec<Palette> = cams.iter().map(|c| c.palette).collect();
+    let mut scene = Scene::new(rig, args.style, args.dye_rgb, args.cameras, &mut rng, || ());
     let px_per_m = 1e3 / geometry.mm_per_px;
     for k in 0..frames {
-        let which = rng.random_range(0..cams.len());
-        let cam = &mut cams[which];
-        cam.palette = style.capsule_palette(camera_palettes[which], &mut rng);
-        if let Some(dye) = args.dye_rgb {
-            cam.palette.body_rgb = dye;
-        }
-        let cam = &*cam;
+        let cam = scene.camera(&mut rng);
         let mut frame = cam.background(k as u64).to_vec();
         let capsule = (k % 8 != 7).then(|| {
-            let mut robot = rig.robot;
-            let scale = style.scale(&mut rng);
-            robot.length_m *= scale;
-            robot.diameter_m *= scale;
-            let (position, heading) = random_pose(rig, &mut rng, &robot);
+            let (robot, position, heading) = random_capsule(rig, args.style, &mut rng);
             cam.draw_capsule(
                 &mut frame,
                 &position,
@@ -266,6 +248,75 @@ fn export_labelme(rig: &Rig, frames: usize, args: &Args) -> anyhow::Result<()> {
     }
     bar.finish();
     Ok(())
+}
+
+/// The cameras of one export (each with its background palette baked in) and the style that
+/// restyles the capsule for every sample.
+struct Scene {
+    cameras: Vec<Camera>,
+    palettes: Vec<Palette>,
+    style: Style,
+    dye_rgb: Option<[u8; 3]>,
+}
+
+impl Scene {
+    /// `count` cameras of `style` (at least one); `made` is told each one.
+    fn new(
+        rig: &Rig,
+        style: Style,
+        dye_rgb: Option<[u8; 3]>,
+        count: usize,
+        rng: &mut ChaCha8Rng,
+        mut made: impl FnMut(),
+    ) -> Self {
+        let cameras: Vec<Camera> = (0..count.max(1))
+            .map(|_| {
+                let noise = rng.random_range(style.noise_range());
+                let palette = style.camera_palette(rng);
+                let camera = Camera::with_palette(
+                    &rig.phantom.mask,
+                    rig.camera.geometry,
+                    rng,
+                    noise,
+                    palette,
+                );
+                made();
+                camera
+            })
+            .collect();
+        let palettes = cameras.iter().map(|c| c.palette).collect();
+        Self {
+            cameras,
+            palettes,
+            style,
+            dye_rgb,
+        }
+    }
+
+    /// A camera for the next sample, its capsule in this sample's look.
+    fn camera(&mut self, rng: &mut ChaCha8Rng) -> &Camera {
+        let which = rng.random_range(0..self.cameras.len());
+        let camera = &mut self.cameras[which];
+        camera.palette = self.style.capsule_palette(self.palettes[which], rng);
+        if let Some(dye) = self.dye_rgb {
+            camera.palette.body_rgb = dye;
+        }
+        camera
+    }
+}
+
+/// The capsule at the style's scale and a random pose in the canal: (size, position, heading).
+fn random_capsule(
+    rig: &Rig,
+    style: Style,
+    rng: &mut ChaCha8Rng,
+) -> (RobotParams, Vector2<f64>, f64) {
+    let mut robot = rig.robot;
+    let scale = style.scale(rng);
+    robot.length_m *= scale;
+    robot.diameter_m *= scale;
+    let (position, heading) = random_pose(rig, rng, &robot);
+    (robot, position, heading)
 }
 
 /// A random pose with the whole capsule inside the canal.
@@ -408,33 +459,14 @@ fn export_split(
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     bar.set_message(name.to_owned());
-    let mut cams: Vec<Camera> = (0..cameras)
-        .map(|_| {
-            let noise = rng.random_range(style.noise_range());
-            let palette = style.camera_palette(&mut rng);
-            let cam = Camera::with_palette(&rig.phantom.mask, geometry, &mut rng, noise, palette);
-            bar.inc(1);
-            cam
-        })
-        .collect();
+    let mut scene = Scene::new(rig, style, dye_rgb, cameras, &mut rng, || bar.inc(1));
     let mut split = Split::default();
     let mut frame = vec![0u8; width * height * 3];
     let mut mask = vec![0u8; width * height];
     let (mut image_out, mut mask_out) = (Vec::new(), Vec::new());
-    let camera_palettes: Vec<Palette> = cams.iter().map(|c| c.palette).collect();
     for _ in 0..count {
-        let which = rng.random_range(0..cams.len());
-        let cam = &mut cams[which];
-        cam.palette = style.capsule_palette(camera_palettes[which], &mut rng);
-        if let Some(dye) = dye_rgb {
-            cam.palette.body_rgb = dye;
-        }
-        let cam = &*cam;
-        let mut robot = rig.robot;
-        let scale = style.scale(&mut rng);
-        robot.length_m *= scale;
-        robot.diameter_m *= scale;
-        let (position, heading) = random_pose(rig, &mut rng, &robot);
+        let cam = scene.camera(&mut rng);
+        let (robot, position, heading) = random_capsule(rig, style, &mut rng);
         frame.copy_from_slice(cam.background(rng.random_range(0..4)));
         cam.draw_capsule(
             &mut frame,
