@@ -90,4 +90,27 @@ fn the_process_set_closes_the_loop_on_the_second_rig() {
     // Measured: RMSE 0.08 mm, max 0.16 mm.
     assert!(rmse < 0.5e-3, "RMSE {:.3} mm", rmse * 1e3);
     assert!(max < 1.0e-3, "max {:.3} mm", max * 1e3);
+    // The rig has a real camera (`[camera.calibration]`: 1280 x 1024, barrel, tilted): the
+    // plant rendered raw frames through it, the camera service rectified them onto the
+    // 800 x 640 view, and vision localized on those. Its poses lie on the truth of their frames.
+    let errors = millinav_tests::pose_errors_vs_truth_mm(&run.run_dir).expect("poses");
+    let median = millinav_tests::median(&errors);
+    eprintln!(
+        "vessel8 vision through the lens: median {median:.4} mm over {} poses",
+        errors.len()
+    );
+    assert!(errors.len() > 1900, "{} poses", errors.len());
+    assert!(median < 0.1, "median pose error {median:.4} mm");
+    let events: Vec<millinav_camera::CameraEventRow> =
+        millinav_kit::runlog::read_run_dir(&run.run_dir).expect("camera events");
+    assert!(
+        events.iter().any(|e| e.event == "source_opened"),
+        "{events:?}"
+    );
+    assert!(
+        events
+            .iter()
+            .all(|e| e.event != "bad_frame" && e.event != "source_stalled"),
+        "{events:?}"
+    );
 }

@@ -13,6 +13,8 @@
 //!   gaussmeter data, applied over a base model.
 //! - [`allocation`]: current allocation (paper Eq. 2–4), current/power limiting, and the
 //!   constrained (QP/SOCP, Clarabel) allocation that respects both limits.
+//! - [`lens`]: a real camera's lens (pinhole + plumb_bob) and registration: raw pixel ↔ world,
+//!   the rectification map, and the twin's raw view.
 //! - [`phantom`]: parametric top-view heart phantom (signed distance field, raster mask).
 //! - [`rigfile`]: the rig as data: a TOML rig file (coils, camera, phantom, robot), its loader
 //!   and validation (`fieldmaps/rigs/FORMAT.md`).
@@ -23,6 +25,7 @@ pub mod coils;
 mod elliptic;
 pub mod fieldmap;
 pub mod flowmap;
+pub mod lens;
 pub mod mask;
 pub mod phantom;
 pub mod physics;

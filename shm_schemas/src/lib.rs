@@ -636,7 +636,7 @@ impl PlantTruth {
 /// Health beacon every service publishes on `HEALTH_SERVICE`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::Heartbeat.v3")]
+#[type_name("millinav::Heartbeat.v4")]
 pub struct Heartbeat {
     /// A `ServiceId` discriminant.
     pub service: u32,
@@ -645,6 +645,12 @@ pub struct Heartbeat {
     pub cycles: u64,
     pub deadline_misses: u64,
     pub wall_time_ns: u64,
+    /// Samples the service's source lost before it saw them (camera: frames the device or the
+    /// recording skipped), since this incarnation started.
+    pub dropped_samples: u64,
+    /// Faults of the service's source (camera: stall, unplug, read error, end of stream), since
+    /// this incarnation started.
+    pub source_faults: u64,
 }
 
 /// Most waypoints one operator request carries.
@@ -856,8 +862,9 @@ assert_layout!(PlantTruth, size 232, align 8, {
     true_flow_mps @ 56, applied_currents_a @ 72, magnetic_force_n @ 200, lockstep_misses @ 216,
     active_coils @ 224, wall_contact @ 228, reserved @ 229,
 });
-assert_layout!(Heartbeat, size 40, align 8, {
+assert_layout!(Heartbeat, size 56, align 8, {
     service @ 0, pid @ 4, incarnation @ 8, cycles @ 16, deadline_misses @ 24, wall_time_ns @ 32,
+    dropped_samples @ 40, source_faults @ 48,
 });
 assert_layout!(OperatorRequest, size 528, align 8, {
     request_id @ 0, verb @ 8, waypoint_count @ 12, waypoints_m @ 16,
@@ -877,11 +884,13 @@ pub enum ServiceId {
     Control = 4,
     Coilbus = 5,
     Supervisor = 6,
+    Camera = 7,
 }
 
 impl ServiceId {
-    pub const ALL: [ServiceId; 6] = [
+    pub const ALL: [ServiceId; 7] = [
         Self::Plant,
+        Self::Camera,
         Self::Vision,
         Self::Flow,
         Self::Control,
@@ -897,6 +906,7 @@ impl ServiceId {
             Self::Control => "control",
             Self::Coilbus => "coilbus",
             Self::Supervisor => "supervisor",
+            Self::Camera => "camera",
         }
     }
 
@@ -916,7 +926,10 @@ impl ServiceId {
 
 /// Data service names. Each has a companion event service (`event_service_of`).
 pub mod services {
+    /// Canonical top-view frames (rectified by the camera service): what vision reads.
     pub const FRAME: &str = "millinav/camera/frame";
+    /// The twin's raw camera frames (its lens, its pose, its resolution), before rectification.
+    pub const RAW_FRAME: &str = "millinav/camera/raw";
     pub const POSE: &str = "millinav/vision/pose";
     pub const FLOW: &str = "millinav/flow/estimate";
     pub const COMMAND: &str = "millinav/control/command";

@@ -513,3 +513,48 @@ pub fn atrium_circle_mm() -> Vec<[f64; 2]> {
         })
         .collect()
 }
+
+/// Localization error of a run, mm: for every frame whose pose control used (`control.csv`),
+/// the distance from that pose to the twin's truth of the same frame (`truth.csv`).
+pub fn pose_errors_vs_truth_mm(run_dir: &Path) -> anyhow::Result<Vec<f64>> {
+    let truth: std::collections::BTreeMap<u64, Vector2<f64>> =
+        read_truth(&run_dir.join("truth.csv"))?
+            .into_iter()
+            .map(|row| (row.frame_seq, row.position_m))
+            .collect();
+    let control: Vec<runlog::ControlRow> = runlog::read_run_dir(run_dir)?;
+    Ok(control
+        .iter()
+        .filter(|row| row.pose_used)
+        .filter_map(|row| {
+            let t = truth.get(&row.frame_seq)?;
+            Some((Vector2::new(row.measured_x_m, row.measured_y_m) - t).norm() * 1e3)
+        })
+        .collect())
+}
+
+/// Poses of a run by frame: (x, y) m from `control.csv`, frames whose pose control used.
+pub fn used_poses(run_dir: &Path) -> anyhow::Result<std::collections::BTreeMap<u64, Vector2<f64>>> {
+    let control: Vec<runlog::ControlRow> = runlog::read_run_dir(run_dir)?;
+    Ok(control
+        .into_iter()
+        .filter(|row| row.pose_used)
+        .map(|row| {
+            (
+                row.frame_seq,
+                Vector2::new(row.measured_x_m, row.measured_y_m),
+            )
+        })
+        .collect())
+}
+
+/// The median of `values` (NaN when empty).
+pub fn median(values: &[f64]) -> f64 {
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    match sorted.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => sorted[n / 2],
+        n => 0.5 * (sorted[n / 2 - 1] + sorted[n / 2]),
+    }
+}

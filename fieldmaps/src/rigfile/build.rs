@@ -191,6 +191,7 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
         driver_supply_v,
         allocation_coils,
         camera,
+        camera_source: file.camera.source.clone(),
         phantom,
         robot,
         appearance,

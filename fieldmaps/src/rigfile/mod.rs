@@ -290,6 +290,9 @@ pub struct Rig {
     /// Indices (into `coils`) the allocation may drive, in the file's order.
     pub allocation_coils: Vec<usize>,
     pub camera: RigCamera,
+    /// The rig's frame source for the camera service (`camera.source`: a V4L2 device, a video
+    /// file, ...); a scenario's `[camera] source` overrides it. None: the twin.
+    pub camera_source: Option<String>,
     pub phantom: RigPhantom,
     pub robot: RobotParams,
     /// How the capsule looks to the classical localizer (`[robot.appearance]`).

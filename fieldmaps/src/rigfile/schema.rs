@@ -81,6 +81,9 @@ pub(crate) struct CameraSection {
     pub pixel_format: PixelFormatName,
     pub mm_per_px: f64,
     pub origin_mm: [f64; 2],
+    /// Where the camera service reads frames on this rig (`/dev/video0`, ...).
+    #[serde(default)]
+    pub source: Option<String>,
     /// The real camera's lens and registration (`calib` writes it); none for a camera that
     /// delivers the canonical top view itself.
     #[serde(default)]

@@ -42,6 +42,8 @@ pub mod env_vars {
     /// `1`: a session (`millinav run --session`): control starts disarmed, the twin runs
     /// until the operator or a signal stops the set.
     pub const SESSION: &str = "MILLINAV_SESSION";
+    /// `1`: the camera service records the raw stream (`millinav run --record-frames`).
+    pub const RECORD_FRAMES: &str = "MILLINAV_RECORD_FRAMES";
     /// `1`: lock the process's memory at start (`mlockall`), set from the launch file.
     pub const LOCK_MEMORY: &str = "MILLINAV_LOCK_MEMORY";
     /// CLOCK_MONOTONIC nanoseconds at run start: the origin of the real-time run clock.

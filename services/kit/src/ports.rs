@@ -201,6 +201,7 @@ pub struct FrameOutbox {
 
 fn open_frame_service(
     node: &Node<ipc::Service>,
+    name: &str,
 ) -> Result<
     iceoryx2::service::port_factory::publish_subscribe::PortFactory<
         ipc::Service,
@@ -209,7 +210,7 @@ fn open_frame_service(
     >,
     KitError,
 > {
-    node.service_builder(&service_name(services::FRAME)?)
+    node.service_builder(&service_name(name)?)
         .publish_subscribe::<[u8]>()
         .user_header::<FrameHeader>()
         .history_size(0)
@@ -220,7 +221,7 @@ fn open_frame_service(
         .max_nodes(MAX_NODES)
         .open_or_create()
         .map_err(open_error(
-            services::FRAME,
+            name,
             format!("[u8] with user header {}", type_name_of::<FrameHeader>()),
         ))
 }
@@ -229,15 +230,24 @@ impl FrameOutbox {
     /// A publisher for frames of up to `max_frame_bytes` pixel bytes (the rig camera's
     /// width × height × channels; `shm_schemas::FRAME_BYTES` for the paper's camera).
     pub fn new(node: &Node<ipc::Service>, max_frame_bytes: usize) -> Result<Self, KitError> {
-        let publisher = open_frame_service(node)?
+        Self::on(node, services::FRAME, max_frame_bytes)
+    }
+
+    /// A publisher on the frame service `name` (`services::FRAME` or `services::RAW_FRAME`).
+    pub fn on(
+        node: &Node<ipc::Service>,
+        name: &str,
+        max_frame_bytes: usize,
+    ) -> Result<Self, KitError> {
+        let publisher = open_frame_service(node, name)?
             .publisher_builder()
             .initial_max_slice_len(max_frame_bytes.max(1))
             .create()
-            .map_err(iox(services::FRAME))?;
-        let notifier = open_event(node, &services::event_service_of(services::FRAME))?
+            .map_err(iox(name))?;
+        let notifier = open_event(node, &services::event_service_of(name))?
             .notifier_builder()
             .create()
-            .map_err(iox(services::FRAME))?;
+            .map_err(iox(name))?;
         Ok(Self {
             publisher,
             notifier,
@@ -311,14 +321,19 @@ pub type FrameSample = Sample<ipc::Service, [u8], FrameHeader>;
 
 impl FrameInbox {
     pub fn new(node: &Node<ipc::Service>) -> Result<Self, KitError> {
-        let subscriber = open_frame_service(node)?
+        Self::on(node, services::FRAME)
+    }
+
+    /// A subscriber on the frame service `name` (`services::FRAME` or `services::RAW_FRAME`).
+    pub fn on(node: &Node<ipc::Service>, name: &str) -> Result<Self, KitError> {
+        let subscriber = open_frame_service(node, name)?
             .subscriber_builder()
             .create()
-            .map_err(iox(services::FRAME))?;
-        let listener = open_event(node, &services::event_service_of(services::FRAME))?
+            .map_err(iox(name))?;
+        let listener = open_event(node, &services::event_service_of(name))?
             .listener_builder()
             .create()
-            .map_err(iox(services::FRAME))?;
+            .map_err(iox(name))?;
         Ok(Self {
             subscriber,
             listener,
@@ -369,6 +384,8 @@ pub struct HeartbeatSender {
     last: Option<Instant>,
     cycles: u64,
     deadline_misses: u64,
+    dropped_samples: u64,
+    source_faults: u64,
 }
 
 impl HeartbeatSender {
@@ -389,6 +406,8 @@ impl HeartbeatSender {
             last: None,
             cycles: 0,
             deadline_misses: 0,
+            dropped_samples: 0,
+            source_faults: 0,
         })
     }
 
@@ -410,7 +429,19 @@ impl HeartbeatSender {
             cycles: self.cycles,
             deadline_misses: self.deadline_misses,
             wall_time_ns: crate::clock::wall_ns(),
+            dropped_samples: self.dropped_samples,
+            source_faults: self.source_faults,
         });
+    }
+
+    /// Counts samples the source lost (a camera's dropped frames).
+    pub fn count_dropped(&mut self, samples: u64) {
+        self.dropped_samples += samples;
+    }
+
+    /// Counts one fault of the source (stall, unplug, read error, end of stream).
+    pub fn count_source_fault(&mut self) {
+        self.source_faults += 1;
     }
 
     /// Counts one missed input deadline; reported with the next heartbeat record.

@@ -100,8 +100,9 @@ pub struct Scenario {
 }
 
 /// The services' own tables of a scenario (besides run, fluid and trajectory).
-pub const KNOWN_SECTIONS: [&str; 6] = [
+pub const KNOWN_SECTIONS: [&str; 7] = [
     "plant",
+    "camera",
     "vision",
     "flow",
     "control",

@@ -172,6 +172,35 @@ pub struct PlantSetup {
     pub rig: std::sync::Arc<Rig>,
 }
 
+/// The twin's real camera: for every raw pixel, the canonical-view pixel it sees.
+struct RawView {
+    map: fieldmaps::lens::PixelMap,
+    /// The canonical render the raw frame is sampled from.
+    scratch: std::cell::RefCell<Vec<u8>>,
+}
+
+impl RawView {
+    /// The rig camera's raw view, when `[camera.calibration]` registers a real camera.
+    fn of(rig: &Rig) -> anyhow::Result<Option<Self>> {
+        let Some(calibration) = rig
+            .camera
+            .calibration
+            .filter(|c| c.image_to_world_mm.is_some())
+        else {
+            return Ok(None);
+        };
+        let view = rig.camera.geometry;
+        let map = calibration
+            .raw_view_map(&view)
+            .map_err(|e| anyhow::anyhow!("{}: [camera.calibration]: {e}", rig.path.display()))?;
+        let canonical = view.width_px as usize * view.height_px as usize * FRAME_CHANNELS as usize;
+        Ok(Some(Self {
+            map,
+            scratch: std::cell::RefCell::new(vec![0; canonical]),
+        }))
+    }
+}
+
 /// Parses and validates the `[plant]` table and loads the model's files. Every failure is a
 /// configuration error naming the scenario, the field or the file.
 pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
@@ -388,6 +417,9 @@ struct Twin<'s> {
     state: PlantState,
     geometry: fieldmaps::phantom::ImageGeometry,
     camera: Camera,
+    /// The rig's real camera (lens, pose, resolution) when it has one: the raw frame is the
+    /// canonical render seen through it. None: the camera delivers the canonical view itself.
+    lens: Option<RawView>,
     /// States of the last `latency_frames` + 1 frames: frame k shows the state of frame k − L.
     history: VecDeque<PlantState>,
     teensy: EmulatedTeensy,
@@ -437,9 +469,15 @@ impl<'s> Twin<'s> {
         // let it do so first, then claim SIGUSR1/SIGUSR2 for link faults.
         let _ = rt.shutdown_requested();
         fault_signals::install().context("installing the link-fault signal handlers")?;
-        let frame_bytes =
-            geometry.width_px as usize * geometry.height_px as usize * FRAME_CHANNELS as usize;
-        let frames = FrameOutbox::new(&rt.node, frame_bytes)?;
+        let lens = RawView::of(&rig)?;
+        let frame_bytes = match &lens {
+            Some(view) => view.map.width * view.map.height * FRAME_CHANNELS as usize,
+            None => {
+                geometry.width_px as usize * geometry.height_px as usize * FRAME_CHANNELS as usize
+            }
+        };
+        // Raw frames, as a camera delivers them; the camera service rectifies them.
+        let frames = FrameOutbox::on(&rt.node, services::RAW_FRAME, frame_bytes)?;
         let truth_out = Outbox::<PlantTruth>::new(&rt.node, services::PLANT_TRUTH)?;
         let truth_csv = TruthCsv::create(&rt.env.run_dir.join(TRUTH_CSV))?;
         let _ = rt.rec.log_static(
@@ -460,6 +498,7 @@ impl<'s> Twin<'s> {
             state,
             geometry,
             camera,
+            lens,
             history: VecDeque::with_capacity(latency + 1),
             teensy,
             frames,
@@ -530,10 +569,37 @@ impl<'s> Twin<'s> {
             diameter_m: self.model.robot.diameter_m,
         };
         let camera = &self.camera;
-        self.frames
-            .send(header, camera.frame_background(seq), |rgb| {
-                camera.finish_frame(rgb, &capsule, seq, state.time_s, &mut rng, None)
-            })?;
+        match &self.lens {
+            None => self
+                .frames
+                .send(header, camera.frame_background(seq), |rgb| {
+                    camera.finish_frame(rgb, &capsule, seq, state.time_s, &mut rng, None)
+                })?,
+            Some(view) => {
+                let mut canonical = view.scratch.borrow_mut();
+                canonical.copy_from_slice(camera.frame_background(seq));
+                camera.finish_frame(&mut canonical, &capsule, seq, state.time_s, &mut rng, None);
+                let channels = FRAME_CHANNELS as usize;
+                let (w, h) = (view.map.width, view.map.height);
+                let raw_header = FrameHeader {
+                    width: w as u32,
+                    height: h as u32,
+                    stride: (w * channels) as u32,
+                    ..header
+                };
+                self.frames
+                    .send_in_place(raw_header, w * h * channels, |out| {
+                        view.map.remap(
+                            &canonical,
+                            geometry.width_px as usize,
+                            geometry.height_px as usize,
+                            geometry.width_px as usize * channels,
+                            channels,
+                            out,
+                        )
+                    })?;
+            }
+        }
         self.truth_out
             .send(truth_of(state, self.model.coil_count(), seq, self.misses))?;
         Ok(())

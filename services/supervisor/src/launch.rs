@@ -24,7 +24,7 @@ pub enum LaunchError {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ProcessSpec {
-    /// Service name: plant, vision, flow, control or coilbus.
+    /// Service name: plant, camera, vision, flow, control or coilbus.
     pub name: String,
     /// Executable; defaults to `millinav-<name>` next to the supervisor's own executable.
     #[serde(default)]
@@ -100,7 +100,7 @@ impl Default for LaunchFile {
             realtime: Realtime::default(),
         };
         Self {
-            processes: ["plant", "coilbus", "flow", "vision", "control"]
+            processes: ["plant", "camera", "coilbus", "flow", "vision", "control"]
                 .into_iter()
                 .map(process)
                 .collect(),
@@ -199,7 +199,7 @@ mod tests {
     #[test]
     fn default_set_and_shutdown_order() {
         let launch = LaunchFile::default();
-        assert_eq!(launch.processes.len(), 5);
+        assert_eq!(launch.processes.len(), 6);
         assert_eq!(
             launch.shutdown_order(),
             vec![
@@ -207,6 +207,7 @@ mod tests {
                 ServiceId::Coilbus,
                 ServiceId::Vision,
                 ServiceId::Flow,
+                ServiceId::Camera,
                 ServiceId::Plant
             ]
         );

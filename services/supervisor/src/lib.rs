@@ -102,6 +102,8 @@ pub struct SupervisorOptions {
     pub max_wall_time: Duration,
     /// A session: control starts disarmed and the twin runs until `ctl stop` or a signal.
     pub session: bool,
+    /// The camera service records its raw stream into the run.
+    pub record_frames: bool,
 }
 
 /// Appends timestamped events to `supervisor_events.csv`.
@@ -740,6 +742,9 @@ fn run_environment(
     if options.session {
         env.push((env_vars::SESSION.to_string(), "1".to_string()));
     }
+    if options.record_frames {
+        env.push((env_vars::RECORD_FRAMES.to_string(), "1".to_string()));
+    }
     env
 }
 
@@ -920,6 +925,26 @@ fn monitor(
             supervisor
                 .deadline_misses
                 .insert((beat.service, beat.incarnation), beat.deadline_misses);
+            // A source fault (a camera that stalled, was unplugged or ended) goes into the
+            // run's events; the service's own event log says why.
+            let earlier = latest_health
+                .get(&beat.service)
+                .filter(|b| b.incarnation == beat.incarnation)
+                .map_or(0, |b| b.source_faults);
+            if beat.source_faults > earlier {
+                if let Some(id) = ServiceId::from_u32(beat.service) {
+                    supervisor.events.record(
+                        id,
+                        "source_fault",
+                        &format!(
+                            "faults={} dropped_frames={} (details: {}_events.csv)",
+                            beat.source_faults,
+                            beat.dropped_samples,
+                            id.name()
+                        ),
+                    );
+                }
+            }
             latest_health.insert(beat.service, beat);
         }
         for request in heartbeats.operator.receive_all()? {
@@ -1040,6 +1065,18 @@ fn record_health(rt: &Runtime, latest_health: &BTreeMap<u32, Heartbeat>) {
                 &format!("health/{}/deadline_misses", id.name()),
                 beat.deadline_misses as f64,
             );
+            if id == ServiceId::Camera {
+                recording::scalar(
+                    &rt.rec,
+                    "health/camera/dropped_frames",
+                    beat.dropped_samples as f64,
+                );
+                recording::scalar(
+                    &rt.rec,
+                    "health/camera/source_faults",
+                    beat.source_faults as f64,
+                );
+            }
         }
     }
 }

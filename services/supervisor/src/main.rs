@@ -51,6 +51,10 @@ enum Commands {
         /// scenario's duration, and the set runs until `millinav ctl stop` or Ctrl-C.
         #[arg(long)]
         session: bool,
+        /// Record the camera's raw stream losslessly into the run (`frames/raw.mkv` + per-frame
+        /// stamps in `frames/frames.csv`); replay it with `[camera] source = "replay:<run dir>"`.
+        #[arg(long)]
+        record_frames: bool,
         /// Directory of the service executables (default: next to this executable).
         #[arg(long)]
         bin_dir: Option<PathBuf>,
@@ -178,6 +182,7 @@ fn run_cli(cli: Cli) -> anyhow::Result<ExitCode> {
             iox_root,
             max_wall_s,
             session,
+            record_frames,
             bin_dir,
         } => {
             let launch = match launch {
@@ -216,6 +221,7 @@ fn run_cli(cli: Cli) -> anyhow::Result<ExitCode> {
                 iox_root,
                 max_wall_time,
                 session,
+                record_frames,
             })?;
             Ok(ExitCode::SUCCESS)
         }

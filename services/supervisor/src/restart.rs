@@ -26,7 +26,7 @@ pub enum ExitKind {
 pub fn classify_exit(service: ServiceId, status: ExitStatus) -> ExitKind {
     if status.code() == Some(i32::from(EXIT_CONFIG)) {
         ExitKind::ConfigError
-    } else if service == ServiceId::Plant && status.success() {
+    } else if matches!(service, ServiceId::Plant | ServiceId::Camera) && status.success() {
         ExitKind::RunComplete
     } else {
         ExitKind::Failed

@@ -203,7 +203,7 @@ pub fn set_in_table(
 
 /// Sections of a scenario that `--set` may change: the services' tables. The run, fluid and
 /// trajectory tables are the matrix's own (flags and cells set them).
-pub const SETTABLE_SECTIONS: [&str; 6] = millinav_kit::scenario::KNOWN_SECTIONS;
+pub const SETTABLE_SECTIONS: [&str; 7] = millinav_kit::scenario::KNOWN_SECTIONS;
 
 /// Applies one `--set KEY=VALUE` to a scenario's service tables: KEY a dotted path such as
 /// `plant.physics.floor_gap_m`, VALUE a TOML value (`3e-6`, `true`, `"classical"`, `[1, 2]`).
