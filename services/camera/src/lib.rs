@@ -415,6 +415,9 @@ struct Pacer {
     answered_once: bool,
 }
 
+/// How long a live source may take to deliver its first frame before that is a stall.
+const FIRST_FRAME_PATIENCE: Duration = Duration::from_secs(10);
+
 /// How often a lockstep pacer republishes the first frame while the chain starts.
 const FIRST_FRAME_REPEAT: Duration = Duration::from_millis(200);
 /// How long a lockstep pacer waits for the chain to answer the first frame before it goes on
@@ -565,14 +568,21 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CameraSetup) -> anyhow
                 }
             }
             Pulled::Nothing => {
-                if !paced && !stalled && last_frame.elapsed() >= stall_timeout {
+                // Before the first frame a source may take a while to start (a device's
+                // exposure, the twin's board check): a longer patience.
+                let patience = if camera.published == 0 {
+                    stall_timeout.max(FIRST_FRAME_PATIENCE)
+                } else {
+                    stall_timeout
+                };
+                if !paced && !stalled && last_frame.elapsed() >= patience {
                     stalled = true;
                     notes.push(Note::fault(
                         "source_stalled",
                         format!(
                             "no frame from {} for {} ms",
                             setup.spec.describe(),
-                            stall_timeout.as_millis()
+                            patience.as_millis()
                         ),
                     ));
                 }
@@ -592,6 +602,8 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CameraSetup) -> anyhow
         tracing::info!(frames = recorder.frames, "recording closed");
     }
     let _ = camera.events.flush();
+    // The supervisor learns of the last faults (end of stream) before it sees the exit.
+    camera.rt.heartbeat.beat_now();
     tracing::info!(published, "camera stopping");
     Ok(())
 }

@@ -434,6 +434,12 @@ impl HeartbeatSender {
         });
     }
 
+    /// Beats now, whatever the period: a service's last word before it exits.
+    pub fn beat_now(&mut self) {
+        self.last = None;
+        self.beat();
+    }
+
     /// Counts samples the source lost (a camera's dropped frames).
     pub fn count_dropped(&mut self, samples: u64) {
         self.dropped_samples += samples;

@@ -236,6 +236,17 @@ pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
             )));
         }
     }
+    let dropout = (config.camera.dropout_at_s, config.camera.dropout_s);
+    if dropout.0.is_some_and(|t| !(t.is_finite() && t >= 0.0))
+        || !(dropout.1.is_finite() && dropout.1 >= 0.0)
+    {
+        return Err(ConfigError::new(format!(
+            "{} = {:?} and camera.dropout_s = {} must be run times >= 0 s",
+            field("camera.dropout_at_s"),
+            dropout.0,
+            dropout.1
+        )));
+    }
     if let Some(start) = config.initial_position_mm {
         if start.iter().any(|v| !v.is_finite()) {
             return Err(ConfigError::new(format!(
@@ -569,6 +580,12 @@ impl<'s> Twin<'s> {
             diameter_m: self.model.robot.diameter_m,
         };
         let camera = &self.camera;
+        if self.config.camera.in_dropout(state.time_s) {
+            // The camera is away: the truth goes on, no frame reaches the set.
+            self.truth_out
+                .send(truth_of(state, self.model.coil_count(), seq, self.misses))?;
+            return Ok(());
+        }
         match &self.lens {
             None => self
                 .frames

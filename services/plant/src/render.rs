@@ -102,6 +102,11 @@ pub struct CameraConfig {
     pub lighting_drift_period_s: f64,
     /// Frames between capture and delivery (applied by the plant loop).
     pub latency_frames: u32,
+    /// The camera vanishes (unplugged, driver hang) at this run time, s: no raw frame is
+    /// published for `dropout_s` while the physics goes on (applied by the plant loop).
+    pub dropout_at_s: Option<f64>,
+    /// How long the camera stays away, s.
+    pub dropout_s: f64,
 }
 
 impl Default for CameraConfig {
@@ -111,11 +116,19 @@ impl Default for CameraConfig {
             lighting_drift_amplitude: 0.04,
             lighting_drift_period_s: 20.0,
             latency_frames: 0,
+            dropout_at_s: None,
+            dropout_s: 0.0,
         }
     }
 }
 
 impl CameraConfig {
+    /// Whether the camera is away at run time `time_s` (`dropout_at_s`, `dropout_s`).
+    pub fn in_dropout(&self, time_s: f64) -> bool {
+        self.dropout_at_s
+            .is_some_and(|at| time_s >= at && time_s < at + self.dropout_s)
+    }
+
     /// No blur, no drift, no latency: the camera as [`Camera::new`] makes it.
     pub fn off() -> Self {
         Self {
@@ -123,6 +136,8 @@ impl CameraConfig {
             lighting_drift_amplitude: 0.0,
             lighting_drift_period_s: 20.0,
             latency_frames: 0,
+            dropout_at_s: None,
+            dropout_s: 0.0,
         }
     }
 }

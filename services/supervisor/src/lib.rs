@@ -921,32 +921,7 @@ fn monitor(
         }
         let now = Instant::now();
         note_heartbeats(supervisor, heartbeats, &mut beating, now);
-        for beat in heartbeats.health.receive_all()? {
-            supervisor
-                .deadline_misses
-                .insert((beat.service, beat.incarnation), beat.deadline_misses);
-            // A source fault (a camera that stalled, was unplugged or ended) goes into the
-            // run's events; the service's own event log says why.
-            let earlier = latest_health
-                .get(&beat.service)
-                .filter(|b| b.incarnation == beat.incarnation)
-                .map_or(0, |b| b.source_faults);
-            if beat.source_faults > earlier {
-                if let Some(id) = ServiceId::from_u32(beat.service) {
-                    supervisor.events.record(
-                        id,
-                        "source_fault",
-                        &format!(
-                            "faults={} dropped_frames={} (details: {}_events.csv)",
-                            beat.source_faults,
-                            beat.dropped_samples,
-                            id.name()
-                        ),
-                    );
-                }
-            }
-            latest_health.insert(beat.service, beat);
-        }
+        take_health(supervisor, heartbeats, &mut latest_health)?;
         for request in heartbeats.operator.receive_all()? {
             if request.verb == OperatorVerb::Stop as u32 {
                 let reply = OperatorReply::new(
@@ -971,6 +946,9 @@ fn monitor(
             }
         }
         if let Some(ending) = supervisor.reap(&rt.node)? {
+            // A process's last heartbeat (e.g. the camera's end-of-stream fault) may have
+            // arrived since the read above.
+            take_health(supervisor, heartbeats, &mut latest_health)?;
             return Ok(ending);
         }
         // A live process that stopped beating is hung (or stopped): kill it; reap restarts it.
@@ -986,6 +964,42 @@ fn monitor(
             return Ok(Ending::WallTimeLimit);
         }
     }
+}
+
+/// Reads the health records that arrived: deadline misses per incarnation, and a supervisor
+/// event for each new source fault.
+fn take_health(
+    supervisor: &mut Supervisor,
+    heartbeats: &Heartbeats,
+    latest_health: &mut BTreeMap<u32, Heartbeat>,
+) -> anyhow::Result<()> {
+    for beat in heartbeats.health.receive_all()? {
+        supervisor
+            .deadline_misses
+            .insert((beat.service, beat.incarnation), beat.deadline_misses);
+        // A source fault (a camera that stalled, was unplugged or ended) goes into the
+        // run's events; the service's own event log says why.
+        let earlier = latest_health
+            .get(&beat.service)
+            .filter(|b| b.incarnation == beat.incarnation)
+            .map_or(0, |b| b.source_faults);
+        if beat.source_faults > earlier {
+            if let Some(id) = ServiceId::from_u32(beat.service) {
+                supervisor.events.record(
+                    id,
+                    "source_fault",
+                    &format!(
+                        "faults={} dropped_frames={} (details: {}_events.csv)",
+                        beat.source_faults,
+                        beat.dropped_samples,
+                        id.name()
+                    ),
+                );
+            }
+        }
+        latest_health.insert(beat.service, beat);
+    }
+    Ok(())
 }
 
 /// The coil-driver board as coilbus reports it: state and fault changes become supervisor

@@ -318,50 +318,26 @@ pub fn undistort_pixels(
 
 /// The rectification map of a calibrated, registered camera: for every pixel of the canonical
 /// top view (`view`), where in the raw frame to sample it (`map_x`, `map_y`, CV_32FC1, for
-/// `imgproc::remap`). World ← view pixel centre, undistorted raw pixel ← world by the inverse
-/// homography, raw pixel ← undistorted by the lens model.
+/// `imgproc::remap`). The numbers are `fieldmaps::lens`'s, the ones the camera service and the
+/// twin use (checked against OpenCV's `projectPoints` in this crate's tests).
 pub fn rectification_maps(
     calibration: &CameraCalibration,
     view: &ImageGeometry,
 ) -> Result<(Mat, Mat), CalibError> {
-    let h = calibration.image_to_world_mm.ok_or_else(|| {
-        CalibError::Invalid(
-            "the camera has no registration (camera.calibration.image_to_world_mm): run \
-             `calib homography` first"
-                .into(),
-        )
-    })?;
-    let inverse = nalgebra::Matrix3::from_row_slice(&h)
-        .try_inverse()
-        .ok_or_else(|| CalibError::Invalid("the registration is not invertible".into()))?;
-    let k = &calibration.camera_matrix;
-    let (w, hgt) = (view.width_px as i32, view.height_px as i32);
-    // Normalized pinhole coordinates of every view pixel, through projectPoints (identity pose)
-    // so the distortion is OpenCV's own.
-    let mut rays = Vector::<Point3f>::with_capacity((w * hgt) as usize);
-    for row in 0..hgt {
-        for col in 0..w {
-            let x_mm = view.origin_x_mm + (f64::from(col) + 0.5) * view.mm_per_px;
-            let y_mm = view.origin_y_mm - (f64::from(row) + 0.5) * view.mm_per_px;
-            let p = inverse * nalgebra::Vector3::new(x_mm, y_mm, 1.0);
-            let (u, v) = (p.x / p.z, p.y / p.z);
-            let xn = (u - k[2]) / k[0];
-            let yn = (v - k[5]) / k[4];
-            rays.push(Point3f::new(xn as f32, yn as f32, 1.0));
-        }
-    }
-    let (km, d) = lens_mats(calibration)?;
-    let zero = Mat::new_rows_cols_with_data(1, 3, &[0.0f64; 3])?.try_clone()?;
-    let mut raw = Vector::<Point2f>::new();
-    calib3d::project_points_def(&rays, &zero, &zero, &km, &d, &mut raw)?;
-    let mut map_x = Mat::new_rows_cols_with_default(hgt, w, core::CV_32FC1, 0.0.into())?;
-    let mut map_y = Mat::new_rows_cols_with_default(hgt, w, core::CV_32FC1, 0.0.into())?;
-    for (i, p) in raw.iter().enumerate() {
-        let (row, col) = ((i as i32) / w, (i as i32) % w);
-        *map_x.at_2d_mut::<f32>(row, col)? = p.x;
-        *map_y.at_2d_mut::<f32>(row, col)? = p.y;
-    }
-    Ok((map_x, map_y))
+    let map = calibration
+        .rectification_map(view)
+        .map_err(CalibError::Invalid)?;
+    let to_mat = |values: &[f32]| -> Result<Mat, CalibError> {
+        let mut mat = Mat::new_rows_cols_with_default(
+            map.height as i32,
+            map.width as i32,
+            core::CV_32FC1,
+            0.0.into(),
+        )?;
+        mat.data_typed_mut::<f32>()?.copy_from_slice(values);
+        Ok(mat)
+    };
+    Ok((to_mat(&map.cols)?, to_mat(&map.rows)?))
 }
 
 /// A raw frame rectified onto the canonical top view with precomputed maps (bilinear; outside

@@ -412,3 +412,29 @@ fn a_bad_calibration_table_is_named_by_file_and_field() {
         );
     }
 }
+
+/// The camera service and the twin use `fieldmaps::lens` (pure Rust) for the lens; it must be
+/// OpenCV's model, which `calib` fits: the same raw pixel for the same ray, over the whole
+/// image of a lens with strong barrel.
+#[test]
+fn the_shared_lens_model_is_opencvs() {
+    let lens = true_lens();
+    let calibration = lens.calibration();
+    let identity = Pose {
+        rvec: [0.0; 3],
+        tvec: [0.0; 3],
+    };
+    let k = lens.camera_matrix;
+    let mut worst = 0.0f64;
+    for i in -6..=6 {
+        for j in -5..=5 {
+            let (x, y) = (f64::from(i) * 0.09, f64::from(j) * 0.08);
+            let (u_cv, v_cv) = project(&lens, &identity, &[[x, y, 1.0]]).unwrap()[0];
+            let (xd, yd) = calibration.distort_normalized(x, y);
+            let (u, v) = (k[0] * xd + k[2], k[4] * yd + k[5]);
+            worst = worst.max((u - u_cv).hypot(v - v_cv));
+        }
+    }
+    // OpenCV projects in f32 points: agreement to its rounding.
+    assert!(worst < 2e-3, "lens models differ by {worst} px");
+}
