@@ -63,7 +63,7 @@ pub struct CameraConfig {
     pub reopen_after_ms: u64,
     /// Record the raw stream into the run (`millinav run --record-frames` sets it too).
     pub record_frames: bool,
-    /// Log the raw frame to the recording every this many frames (0: never).
+    /// Log the raw frame (JPEG) to the recording every this many frames (0: never).
     pub log_raw_every_frames: u64,
 }
 
@@ -77,7 +77,7 @@ impl Default for CameraConfig {
             stall_timeout_ms: 1000,
             reopen_after_ms: 1000,
             record_frames: false,
-            log_raw_every_frames: 10,
+            log_raw_every_frames: 50,
         }
     }
 }
@@ -297,7 +297,7 @@ impl Camera<'_> {
             }
             let every = self.setup.config.log_raw_every_frames;
             if every > 0 && frame.stamp.seq.is_multiple_of(every) {
-                log_raw(&self.rt.rec, frame);
+                log_raw(&self.rt.rec, frame, RAW_LOG_JPEG_QUALITY);
             }
         }
         let view = self.setup.rig.camera.geometry;
@@ -357,24 +357,59 @@ impl Camera<'_> {
     }
 }
 
-fn log_raw(rec: &rerun::RecordingStream, frame: &RawFrame) {
-    let (w, h) = (frame.image.cols() as u32, frame.image.rows() as u32);
+/// A packed RGB camera image for the Rerun recording: JPEG at `quality` (1–100), raw pixels at 0 or when
+/// encoding fails.
+pub fn recorded_image(
+    rgb: Vec<u8>,
+    w: usize,
+    h: usize,
+    quality: u8,
+) -> Box<dyn rerun::AsComponents> {
+    if quality > 0 {
+        let encoded = (|| -> opencv::Result<Vec<u8>> {
+            let mut mat = opencv::core::Mat::new_rows_cols_with_default(
+                h as i32,
+                w as i32,
+                opencv::core::CV_8UC3,
+                0.0.into(),
+            )?;
+            mat.data_bytes_mut()?.copy_from_slice(&rgb);
+            let mut bgr = opencv::core::Mat::default();
+            opencv::imgproc::cvt_color(&mat, &mut bgr, opencv::imgproc::COLOR_RGB2BGR, 0)?;
+            let mut buf = opencv::core::Vector::<u8>::new();
+            let params = opencv::core::Vector::<i32>::from_slice(&[
+                opencv::imgcodecs::IMWRITE_JPEG_QUALITY,
+                i32::from(quality.min(100)),
+            ]);
+            opencv::imgcodecs::imencode(".jpg", &bgr, &mut buf, &params)?;
+            Ok(buf.to_vec())
+        })();
+        if let Ok(bytes) = encoded {
+            return Box::new(rerun::EncodedImage::from_file_contents(bytes));
+        }
+    }
+    Box::new(rerun::Image::from_rgb24(rgb, [w as u32, h as u32]))
+}
+
+/// The raw frame into the recording (JPEG, so a 1 MP frame costs ~0.3 MB, not 3).
+fn log_raw(rec: &rerun::RecordingStream, frame: &RawFrame, jpeg_quality: u8) {
+    let (w, h) = (frame.image.cols() as usize, frame.image.rows() as usize);
     let Ok(bytes) = frame.image.data_bytes() else {
         return;
     };
-    let image = match frame.channels {
-        Channels::Rgb => rerun::Image::from_rgb24(bytes.to_vec(), [w, h]),
-        Channels::Gray => rerun::Image::from_l8(bytes.to_vec(), [w, h]),
-        Channels::Bgr => {
-            let mut rgb = Vec::with_capacity(bytes.len());
-            for px in bytes.chunks_exact(3) {
-                rgb.extend_from_slice(&[px[2], px[1], px[0]]);
-            }
-            rerun::Image::from_rgb24(rgb, [w, h])
-        }
+    let rgb: Vec<u8> = match frame.channels {
+        Channels::Rgb => bytes.to_vec(),
+        Channels::Gray => bytes.iter().flat_map(|&g| [g, g, g]).collect(),
+        Channels::Bgr => bytes
+            .chunks_exact(3)
+            .flat_map(|px| [px[2], px[1], px[0]])
+            .collect(),
     };
     recording::set_time(rec, frame.stamp.capture_time_ns, frame.stamp.seq);
-    let _ = rec.log("camera_raw/image", &image);
+    let _ = rec.log(
+        "camera_raw/image",
+        recorded_image(rgb, w, h, jpeg_quality).as_ref(),
+    );
 }
 
 /// Opens the source named by the setup.
@@ -414,6 +449,9 @@ struct Pacer {
     commands: Option<Inbox<CoilCommand>>,
     answered_once: bool,
 }
+
+/// JPEG quality of the raw frames in the recording.
+const RAW_LOG_JPEG_QUALITY: u8 = 85;
 
 /// How long a live source may take to deliver its first frame before that is a stall.
 const FIRST_FRAME_PATIENCE: Duration = Duration::from_secs(10);

@@ -316,7 +316,10 @@ mod tests {
         let text = toml::to_string(&LaunchFile::default()).expect("serialize");
         let back = LaunchFile::parse(&text, Path::new("default.toml")).expect("parse");
         let names: Vec<&str> = back.processes.iter().map(|p| p.name.as_str()).collect();
-        assert_eq!(names, ["plant", "coilbus", "flow", "vision", "control"]);
+        assert_eq!(
+            names,
+            ["plant", "camera", "coilbus", "flow", "vision", "control"]
+        );
         assert!(back
             .processes
             .iter()

@@ -44,8 +44,13 @@ pub struct VisionConfig {
     pub onnxruntime: Option<PathBuf>,
     /// Side of the square search region around the last detection (mm), classical path.
     pub roi_mm: f64,
-    /// Log the camera image (half resolution) every this many frames; 0 never.
+    /// Log the camera image (with the segmentation and keypoints) every this many frames; 0
+    /// never.
     pub image_log_every: u64,
+    /// Logged image size: 1 = full resolution, 2 = every second pixel, ...
+    pub image_log_downsample: u32,
+    /// JPEG quality of the logged image (1–100); 0 logs raw pixels (lossless, 3 bytes a pixel).
+    pub image_log_jpeg_quality: u8,
 }
 
 impl Default for VisionConfig {
@@ -56,6 +61,8 @@ impl Default for VisionConfig {
             onnxruntime: None,
             roi_mm: 20.0,
             image_log_every: 25,
+            image_log_downsample: 1,
+            image_log_jpeg_quality: 90,
         }
     }
 }
@@ -217,14 +224,17 @@ pub fn invalid_pose(header: &FrameHeader) -> Pose {
     }
 }
 
-/// Half-resolution copy of an RGB frame for the recording.
-fn half_resolution(rgb: &[u8], width: usize, height: usize) -> Vec<u8> {
-    let (w2, h2) = (width / 2, height / 2);
-    let mut out = Vec::with_capacity(w2 * h2 * 3);
-    for row in 0..h2 {
-        let src_row = &rgb[(2 * row) * width * 3..(2 * row + 1) * width * 3];
-        for col in 0..w2 {
-            out.extend_from_slice(&src_row[2 * col * 3..2 * col * 3 + 3]);
+/// Every `step`-th pixel of every `step`-th row of a packed RGB frame.
+fn downsample(rgb: &[u8], width: usize, height: usize, step: usize) -> Vec<u8> {
+    if step <= 1 {
+        return rgb[..width * height * 3].to_vec();
+    }
+    let (w, h) = (width / step, height / step);
+    let mut out = Vec::with_capacity(w * h * 3);
+    for row in 0..h {
+        let src_row = &rgb[(step * row) * width * 3..(step * row + 1) * width * 3];
+        for col in 0..w {
+            out.extend_from_slice(&src_row[step * col * 3..step * col * 3 + 3]);
         }
     }
     out
@@ -237,24 +247,30 @@ fn log_frame(
     detection: Option<&Detection>,
     robot_mask: Option<(&opencv::core::Mat, SearchRect)>,
     log_image: bool,
+    config: &VisionConfig,
 ) {
     use opencv::prelude::*;
     let (w, h) = (header.width as usize, header.height as usize);
+    let step = config.image_log_downsample.max(1) as usize;
     if log_image {
-        let small = half_resolution(rgb, w, h);
-        let _ = rec.log(
-            "camera/image",
-            &rerun::Image::from_rgb24(small, [(w / 2) as u32, (h / 2) as u32]),
+        let small = downsample(rgb, w, h, step);
+        let image = millinav_camera::recorded_image(
+            small,
+            w / step,
+            h / step,
+            config.image_log_jpeg_quality,
         );
+        let _ = rec.log("camera/image", image.as_ref());
         if let Some((mask, rect)) = robot_mask {
-            // The segmentation of the search region, placed in the half-resolution frame.
-            let mut full = vec![0u8; (w / 2) * (h / 2)];
-            for r in (0..rect.3).step_by(2) {
+            // The segmentation of the search region, placed in the logged frame.
+            let (lw, lh) = (w / step, h / step);
+            let mut full = vec![0u8; lw * lh];
+            for r in (0..rect.3).step_by(step) {
                 if let Ok(line) = mask.at_row::<u8>(r) {
-                    for c in (0..rect.2 as usize).step_by(2) {
-                        let (fr, fc) = ((rect.1 + r) as usize / 2, (rect.0 as usize + c) / 2);
-                        if fr < h / 2 && fc < w / 2 && line[c] > 0 {
-                            full[fr * (w / 2) + fc] = 1;
+                    for c in (0..rect.2 as usize).step_by(step) {
+                        let (fr, fc) = ((rect.1 + r) as usize / step, (rect.0 as usize + c) / step);
+                        if fr < lh && fc < lw && line[c] > 0 {
+                            full[fr * lw + fc] = 1;
                         }
                     }
                 }
@@ -264,7 +280,7 @@ fn log_frame(
                 &rerun::SegmentationImage::new(
                     full,
                     rerun::datatypes::ImageFormat::segmentation(
-                        [(w / 2) as u32, (h / 2) as u32],
+                        [(w / step) as u32, (h / step) as u32],
                         rerun::datatypes::ChannelDatatype::U8,
                     ),
                 ),
@@ -272,10 +288,11 @@ fn log_frame(
         }
     }
     if let Some(d) = detection {
-        let half = |(c, r): (f64, f64)| [(c / 2.0) as f32, (r / 2.0) as f32];
+        let scale = step as f64;
+        let at = |(c, r): (f64, f64)| [(c / scale) as f32, (r / scale) as f32];
         let _ = rec.log(
             "camera/keypoints",
-            &rerun::Points2D::new([half(d.tip_px), half(d.centroid_px), half(d.tail_px)])
+            &rerun::Points2D::new([at(d.tip_px), at(d.centroid_px), at(d.tail_px)])
                 .with_labels(["tip", "centroid", "tail"])
                 .with_radii([2.0]),
         );
@@ -299,6 +316,15 @@ pub fn prepare(scenario: &Scenario) -> Result<VisionSetup, ConfigError> {
             "{} must be > 0, got {}",
             field("roi_mm"),
             config.roi_mm
+        )));
+    }
+    if config.image_log_downsample == 0 || config.image_log_jpeg_quality > 100 {
+        return Err(ConfigError::new(format!(
+            "{} must be >= 1 and {} between 0 (raw) and 100, got {} and {}",
+            field("image_log_downsample"),
+            field("image_log_jpeg_quality"),
+            config.image_log_downsample,
+            config.image_log_jpeg_quality
         )));
     }
     if config.localizer == LocalizerKind::Unet {
@@ -390,7 +416,7 @@ fn pose_for_frame(
                 match &result.detection {
                     Ok(detection) => {
                         *lost_frames = 0;
-                        log_frame(rec, header, rgb, Some(detection), mask, log_image);
+                        log_frame(rec, header, rgb, Some(detection), mask, log_image, &config);
                         pose_from_detection(header, detection, result.source)
                     }
                     Err(why) => {
@@ -398,7 +424,7 @@ fn pose_for_frame(
                         if *lost_frames == 1 || lost_frames.is_multiple_of(WARN_EVERY_LOST_FRAMES) {
                             tracing::warn!(seq = header.stamp.seq, "no pose: {why}");
                         }
-                        log_frame(rec, header, rgb, None, None, log_image);
+                        log_frame(rec, header, rgb, None, None, log_image, &config);
                         invalid_pose(header)
                     }
                 }
