@@ -44,8 +44,9 @@ fn compare_with(cell: Cell, latency_frames: u32) {
         }
     });
     // One directory per cell: the tests run in parallel and each removes its own at the end.
+    // The latency cell has the same cell name as the plain one: the latency goes in the name too.
     let work = std::env::temp_dir().join(format!(
-        "millinav-fvp-{}-{}",
+        "millinav-fvp-{}-{}-lat{latency_frames}",
         std::process::id(),
         cell.name()
     ));

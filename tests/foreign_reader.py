@@ -34,7 +34,7 @@ class FrameStamp(ctypes.Structure):
 
 
 class Pose(ctypes.Structure):
-    """CONTRACT.md, "Pose": type name millinav::Pose.v3, 120 bytes, alignment 8."""
+    """CONTRACT.md, "Pose": type name millinav::Pose.v4, 120 bytes, alignment 8."""
 
     _fields_ = [
         ("stamp", FrameStamp),
@@ -51,11 +51,11 @@ class Pose(ctypes.Structure):
 
     @staticmethod
     def type_name() -> str:
-        return "millinav::Pose.v3"
+        return "millinav::Pose.v4"
 
 
 class CoilCommand(ctypes.Structure):
-    """CONTRACT.md, "CoilCommand": type name millinav::CoilCommand.v3, 216 bytes, alignment 8."""
+    """CONTRACT.md, "CoilCommand": type name millinav::CoilCommand.v4, 216 bytes, alignment 8."""
 
     _fields_ = [
         ("stamp", FrameStamp),
@@ -71,7 +71,7 @@ class CoilCommand(ctypes.Structure):
 
     @staticmethod
     def type_name() -> str:
-        return "millinav::CoilCommand.v3"
+        return "millinav::CoilCommand.v4"
 
 
 def check_layouts() -> None:

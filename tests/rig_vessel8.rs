@@ -107,10 +107,13 @@ fn the_process_set_closes_the_loop_on_the_second_rig() {
         events.iter().any(|e| e.event == "source_opened"),
         "{events:?}"
     );
+    // Every frame arrived whole and on time: no bad frame, and no stall that the frames came
+    // back from (once the plant has finished the run, the camera may report one while the set
+    // shuts down).
     assert!(
         events
             .iter()
-            .all(|e| e.event != "bad_frame" && e.event != "source_stalled"),
+            .all(|e| e.event != "bad_frame" && e.event != "source_recovered"),
         "{events:?}"
     );
 }

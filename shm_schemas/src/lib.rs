@@ -19,7 +19,7 @@ use iceoryx2::prelude::ZeroCopySend;
 /// version fails to open the services instead of misreading them. Bump it with any change a
 /// foreign reader would notice (see `CONTRACT.md`); `tests::type_names_carry_the_contract_version`
 /// checks every name.
-pub const CONTRACT_VERSION: u32 = 3;
+pub const CONTRACT_VERSION: u32 = 4;
 
 /// Largest number of coils a payload (and a serial frame) can carry. Arrays of coil values are
 /// this long; `active_coils` says how many leading entries are meaningful (the rest are zero).
@@ -236,7 +236,7 @@ impl PixelMapping {
 /// Pixels map to the world by [`PixelMapping`]'s convention ([`FrameHeader::pixel_to_world_m`]).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::FrameHeader.v3")]
+#[type_name("millinav::FrameHeader.v4")]
 pub struct FrameHeader {
     pub stamp: FrameStamp,
     pub width: u32,
@@ -347,7 +347,7 @@ pub enum PoseSource {
 /// Robot pose estimated by vision.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::Pose.v3")]
+#[type_name("millinav::Pose.v4")]
 pub struct Pose {
     /// The frame this pose was measured in.
     pub stamp: FrameStamp,
@@ -395,7 +395,7 @@ pub mod zone {
 /// Steady-map flow estimate at the robot (flow service).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::FlowEstimate.v3")]
+#[type_name("millinav::FlowEstimate.v4")]
 pub struct FlowEstimate {
     /// The frame of the pose this estimate was made for.
     pub stamp: FrameStamp,
@@ -442,7 +442,7 @@ impl ControlMode {
 /// Coil currents requested by control for one frame.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::CoilCommand.v3")]
+#[type_name("millinav::CoilCommand.v4")]
 pub struct CoilCommand {
     /// The frame of the pose the command answers.
     pub stamp: FrameStamp,
@@ -545,7 +545,7 @@ impl BoardFault {
 /// What coilbus applied and how healthy its link is.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::CoilStatus.v3")]
+#[type_name("millinav::CoilStatus.v4")]
 pub struct CoilStatus {
     /// Frame of the last applied command (`NO_FRAME` for a safe-state zero).
     pub frame_seq: u64,
@@ -600,7 +600,7 @@ impl CoilStatus {
 /// Ground truth of the digital twin. For metrics and tests only: no controller may read it.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::PlantTruth.v3")]
+#[type_name("millinav::PlantTruth.v4")]
 pub struct PlantTruth {
     pub frame_seq: u64,
     pub sim_time_ns: u64,
@@ -756,7 +756,7 @@ impl OperatorState {
 /// `request_id`. A request sent again with the same id is answered again, not applied again.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("millinav::OperatorRequest.v3")]
+#[type_name("millinav::OperatorRequest.v4")]
 pub struct OperatorRequest {
     pub request_id: u64,
     /// An `OperatorVerb` discriminant.
@@ -769,7 +769,7 @@ pub struct OperatorRequest {
 /// Control's answer to an [`OperatorRequest`] (`OPERATOR_REPLY`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
-#[type_name("millinav::OperatorReply.v3")]
+#[type_name("millinav::OperatorReply.v4")]
 pub struct OperatorReply {
     pub request_id: u64,
     /// 1 = done, 0 = refused (nothing changed).
@@ -996,7 +996,7 @@ mod tests {
                 "{name} does not end in {suffix}"
             );
         }
-        assert_eq!(type_name::<Pose>(), "millinav::Pose.v3");
+        assert_eq!(type_name::<Pose>(), "millinav::Pose.v4");
     }
 
     fn good_header() -> FrameHeader {

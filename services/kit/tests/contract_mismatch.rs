@@ -72,11 +72,11 @@ fn ports_refuse_a_service_of_another_contract_version() {
 
     let error =
         Inbox::<Pose>::new(&node, services::POSE).expect_err("an Inbox<Pose> opened a v1 service");
-    assert_mismatch(error, services::POSE, "millinav::Pose.v3");
+    assert_mismatch(error, services::POSE, "millinav::Pose.v4");
     let error = Outbox::<Pose>::new(&node, services::POSE)
         .err()
         .expect("an Outbox<Pose> opened a v1 service");
-    assert_mismatch(error, services::POSE, "millinav::Pose.v3");
+    assert_mismatch(error, services::POSE, "millinav::Pose.v4");
 }
 
 #[test]
@@ -104,5 +104,5 @@ fn frame_inbox_refuses_a_frame_header_of_another_version() {
         .create()
         .unwrap();
     let error = FrameInbox::new(&node).expect_err("a FrameInbox opened a v1 frame service");
-    assert_mismatch(error, services::FRAME, "millinav::FrameHeader.v3");
+    assert_mismatch(error, services::FRAME, "millinav::FrameHeader.v4");
 }

@@ -416,7 +416,7 @@ fn pose_for_frame(
                 match &result.detection {
                     Ok(detection) => {
                         *lost_frames = 0;
-                        log_frame(rec, header, rgb, Some(detection), mask, log_image, &config);
+                        log_frame(rec, header, rgb, Some(detection), mask, log_image, config);
                         pose_from_detection(header, detection, result.source)
                     }
                     Err(why) => {
@@ -424,7 +424,7 @@ fn pose_for_frame(
                         if *lost_frames == 1 || lost_frames.is_multiple_of(WARN_EVERY_LOST_FRAMES) {
                             tracing::warn!(seq = header.stamp.seq, "no pose: {why}");
                         }
-                        log_frame(rec, header, rgb, None, None, log_image, &config);
+                        log_frame(rec, header, rgb, None, None, log_image, config);
                         invalid_pose(header)
                     }
                 }
