@@ -138,13 +138,19 @@ impl RunSet {
     /// Waits for the supervisor and checks that it exited cleanly after the plant reported
     /// `run_complete` (the whole scenario ran).
     pub fn assert_completes(&mut self, timeout: Duration) {
+        self.assert_completed_by("plant", timeout);
+    }
+
+    /// Waits for the supervisor and checks that it exited cleanly after `service` (the plant,
+    /// or the camera at the end of a replayed recording) reported `run_complete`.
+    pub fn assert_completed_by(&mut self, service: &str, timeout: Duration) {
         let status = self.wait(timeout).expect("run finishes");
         assert!(status.success(), "supervisor exit {status}");
         let events = self.supervisor_events().expect("supervisor events");
         assert!(
             events
                 .iter()
-                .any(|e| e.service == "plant" && e.event == "run_complete"),
+                .any(|e| e.service == service && e.event == "run_complete"),
             "run {} did not complete: {events:?}",
             self.name
         );

@@ -523,7 +523,9 @@ impl Pacer {
                 }
             }
             millinav_kit::service_loop::keep_alive(&mut camera.rt.heartbeat, &[&camera.frames]);
-            commands.wait(Duration::from_millis(20));
+            if !commands.wait(Duration::from_millis(20)) {
+                return Ok(false);
+            }
         }
     }
 }
@@ -626,6 +628,7 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: CameraSetup) -> anyhow
                 }
             }
             Pulled::Ended(why) => break Some(why),
+            Pulled::Terminated => break None,
         }
     };
     for note in notes.drain(..) {

@@ -101,8 +101,9 @@ impl Recorder {
         if let Some(writer) = self.writer.as_mut() {
             writer.write(image)?;
         }
+        // Flushed per frame: a camera killed mid-run leaves a recording that replays to there.
         self.rows
-            .append(&RecordedFrameRow {
+            .append_now(&RecordedFrameRow {
                 seq: frame.stamp.seq,
                 incarnation: frame.stamp.incarnation,
                 capture_time_ns: frame.stamp.capture_time_ns,

@@ -146,6 +146,8 @@ pub enum Pulled {
     Nothing,
     /// The stream is over (end of file, folder or recording), with the reason.
     Ended(String),
+    /// SIGINT / SIGTERM arrived while the source waited: the service stops.
+    Terminated,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -222,7 +224,9 @@ impl FrameSource for TwinSource {
     fn pull(&mut self, timeout: Duration, notes: &mut Vec<Note>) -> Result<Pulled, SourceError> {
         let mut sample = self.inbox.latest()?;
         if sample.is_none() {
-            self.inbox.wait(timeout);
+            if !self.inbox.wait(timeout) {
+                return Ok(Pulled::Terminated);
+            }
             sample = self.inbox.latest()?;
         }
         let Some(sample) = sample else {

@@ -39,6 +39,7 @@ fn pull_all(source: &mut dyn FrameSource) -> (Vec<RawFrame>, String) {
             Pulled::Frame(f) => frames.push(f),
             Pulled::Nothing => {}
             Pulled::Ended(why) => return (frames, why),
+            Pulled::Terminated => panic!("terminated"),
         }
     }
     panic!("the source never ended");

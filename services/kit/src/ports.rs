@@ -158,9 +158,11 @@ impl<T: Debug + ZeroCopySend + Copy + 'static> Inbox<T> {
     }
 
     /// Sleeps until a sample is announced or `timeout` passes, whichever comes first. The
-    /// announcement is consumed; the sample stays queued for `receive_all` / `latest`.
-    pub fn wait(&self, timeout: Duration) {
-        let _ = self.listener.timed_wait(|_| {}, timeout);
+    /// announcement is consumed; the sample stays queued for `receive_all` / `latest`. Returns
+    /// false when SIGINT / SIGTERM ended the wait: iceoryx2 hands the termination request to
+    /// this wait (not to a later `Runtime::shutdown_requested`), so a loop must stop on false.
+    pub fn wait(&self, timeout: Duration) -> bool {
+        still_running(self.listener.timed_wait(|_| {}, timeout))
     }
 
     /// Every message queued since the last call, oldest first.
@@ -355,9 +357,10 @@ impl FrameInbox {
         let _ = self.listener.try_wait(|_| {});
     }
 
-    /// Sleeps until a frame is announced or `timeout` passes, whichever comes first.
-    pub fn wait(&self, timeout: Duration) {
-        let _ = self.listener.timed_wait(|_| {}, timeout);
+    /// Sleeps until a frame is announced or `timeout` passes, whichever comes first; false when
+    /// SIGINT / SIGTERM ended the wait (see `Inbox::wait`).
+    pub fn wait(&self, timeout: Duration) -> bool {
+        still_running(self.listener.timed_wait(|_| {}, timeout))
     }
 }
 
@@ -373,6 +376,14 @@ impl Attachable for FrameInbox {
     fn drain_events(&self) {
         FrameInbox::drain_events(self);
     }
+}
+
+/// Whether a listener's wait ended otherwise than by a termination signal.
+fn still_running(waited: Result<u64, iceoryx2::port::listener::ListenerWaitError>) -> bool {
+    !matches!(
+        waited,
+        Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal)
+    )
 }
 
 /// Signals liveness on the service's heartbeat event and publishes a `Heartbeat` record.
