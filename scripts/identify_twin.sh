@@ -30,6 +30,8 @@ CANDIDATES=(
   "velocity_100ms|velocity filtered over 100 ms|--set control.velocity_filter_ms=100"
   "coils_30ms|coil current L/R time constant 30 ms|--set plant.physics.coil_time_constant_ms=30"
   "latency_1frame|one frame (100 ms) of camera latency, not compensated (the paper's pipeline)|--camera-latency-ms 100 --no-latency-compensation"
+  "pipeline_60ms|60 ms from a frame's capture to its command reaching the coils, inside the 10 Hz frame (the paper's UNet alone took 56 ms), not compensated|--set plant.command_delay_ms=60 --no-latency-compensation"
+  "pipeline_60ms_floor_30um|pipeline_60ms with the capsule on the floor (30 µm gap, flow ×1.7)|--set plant.command_delay_ms=60 --no-latency-compensation --set plant.physics.floor_gap_m=3e-5 --set plant.physics.floor_flow_factor=1.7"
   "ueq_1hz|SMC-DOB's u_eq gains, which the paper does not print: ω_n 1 Hz instead of 2 Hz (ζ 1)|--set control.smc.k1=12.57 --set control.smc.k2=39.48"
   "ueq_0.5hz|SMC-DOB's u_eq gains at ω_n 0.5 Hz (ζ 1)|--set control.smc.k1=6.283 --set control.smc.k2=9.870"
   "eta_printed|η as printed: a bandwidth of 0.06 s⁻¹ (time constant 16.7 s; flow gain 0.12 s⁻¹: 8.3 s)|--set control.smc.eta_s=16.7 --set control.smc.flow_eta_s=8.33"

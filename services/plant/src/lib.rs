@@ -46,6 +46,12 @@ pub struct PlantConfig {
     /// Log the true pose every frame and a summary image every this many frames.
     pub log_every_frames: u64,
     pub physics: PlantPhysicsConfig,
+    /// Time from a frame's capture to the command answering it reaching the coils, ms: vision
+    /// inference, control, the serial link and the amplifier (lockstep only; a real-time run
+    /// has its real delays). The coils drive the previous command until then. Less than one
+    /// frame period; whole frames more are `[plant.camera] latency_frames`. The controller
+    /// learns of it only from `[control.latency] unstamped_delay_ms`, as on a rig.
+    pub command_delay_ms: f64,
     /// Blur, lighting drift, latency (`[plant.camera]`).
     pub camera: CameraConfig,
     /// What SIGUSR1 / SIGUSR2 do to the emulated Teensy link (`[plant.link_faults]`).
@@ -106,6 +112,7 @@ impl Default for PlantConfig {
             camera_noise_std: 3.0,
             log_every_frames: 1,
             physics: PlantPhysicsConfig::default(),
+            command_delay_ms: 0.0,
             camera: CameraConfig::default(),
             link_faults: LinkFaultConfig::default(),
             board_faults: BoardFaultSchedule::default(),
@@ -235,6 +242,18 @@ pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
                 field("physics.floor_flow_factor")
             )));
         }
+    }
+    let frame_ms = scenario.frame_period_s() * 1e3;
+    if !(config.command_delay_ms.is_finite()
+        && config.command_delay_ms >= 0.0
+        && config.command_delay_ms < frame_ms)
+    {
+        return Err(ConfigError::new(format!(
+            "{} must be >= 0 ms and below the frame period ({frame_ms} ms; whole frames of \
+             delay are [plant.camera] latency_frames), got {}",
+            field("command_delay_ms"),
+            config.command_delay_ms
+        )));
     }
     let dropout = (config.camera.dropout_at_s, config.camera.dropout_s);
     if dropout.0.is_some_and(|t| !(t.is_finite() && t >= 0.0))
@@ -448,6 +467,8 @@ struct Twin<'s> {
     fired: Vec<&'static str>,
     last_recorded: Option<u64>,
     wall_start: Instant,
+    /// The coils' command before the current one: what they drive during the command delay.
+    previous_command_a: [f64; MAX_RIG_COILS],
 }
 
 impl<'s> Twin<'s> {
@@ -524,6 +545,7 @@ impl<'s> Twin<'s> {
             fired: Vec::new(),
             last_recorded: None,
             wall_start: Instant::now(),
+            previous_command_a: [0.0; MAX_RIG_COILS],
         })
     }
 
@@ -739,10 +761,22 @@ impl<'s> Twin<'s> {
         }
     }
 
-    /// Steps the physics one frame period with `currents` commanded.
-    fn advance(&mut self, currents: &[f64]) {
-        self.model
-            .step(&mut self.state, currents, self.scenario.frame_period_s());
+    /// Steps the physics one frame period with `currents` commanded: in lockstep from
+    /// `command_delay_ms` into the frame on (the previous command until then), in real time
+    /// from the frame's start (the set's own delays are real).
+    fn advance(&mut self, currents: &[f64; MAX_RIG_COILS]) {
+        let delay_s = match self.scenario.run.mode {
+            ClockMode::Lockstep => self.config.command_delay_ms * 1e-3,
+            ClockMode::Realtime => 0.0,
+        };
+        self.model.step_with_command_delay(
+            &mut self.state,
+            &self.previous_command_a,
+            currents,
+            self.scenario.frame_period_s(),
+            delay_s,
+        );
+        self.previous_command_a = *currents;
         self.seq += 1;
     }
 
@@ -915,5 +949,17 @@ mod tests {
         let (scenario, _) = scenario_with("substep", "[plant.physics]\nsubstep_ms = 0.0", "");
         let error = check_config(&scenario).unwrap_err().to_string();
         assert!(error.contains("[plant] physics.substep_ms"), "{error}");
+
+        // The command delay lives inside one frame (the scenario's frames are 10 ms).
+        for bad in ["10.0", "-1.0", "nan"] {
+            let (scenario, _) = scenario_with("delay", &format!("command_delay_ms = {bad}"), "");
+            let error = check_config(&scenario).unwrap_err().to_string();
+            assert!(
+                error.contains("[plant] command_delay_ms") && error.contains("latency_frames"),
+                "{bad}: {error}"
+            );
+        }
+        let (scenario, _) = scenario_with("delay_ok", "command_delay_ms = 6.0", "");
+        check_config(&scenario).unwrap();
     }
 }

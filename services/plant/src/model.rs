@@ -297,6 +297,35 @@ impl PlantModel {
         state.wall_contact = any_contact;
     }
 
+    /// [`Self::step`] for a command that reaches the coils `delay_s` into the step: the coils
+    /// are driven with `previous_a` until then and with `commanded_a` after (a frame's command
+    /// acts only once vision, control and the serial link have handled that frame). `delay_s`
+    /// is clamped into [0, `dt`]; 0 is exactly [`Self::step`].
+    pub fn step_with_command_delay(
+        &self,
+        state: &mut PlantState,
+        previous_a: &[f64],
+        commanded_a: &[f64],
+        dt: f64,
+        delay_s: f64,
+    ) {
+        let delay = if delay_s.is_finite() {
+            delay_s.clamp(0.0, dt.max(0.0))
+        } else {
+            0.0
+        };
+        if delay <= 0.0 {
+            self.step(state, commanded_a, dt);
+            return;
+        }
+        self.step(state, previous_a, delay);
+        let touched_before = state.wall_contact;
+        if dt - delay > 0.0 {
+            self.step(state, commanded_a, dt - delay);
+        }
+        state.wall_contact |= touched_before;
+    }
+
     fn substep(&self, state: &mut PlantState, commanded_a: &[f64], h: f64) {
         // Coil currents follow their commands with the L/R lag (exact for a first-order lag).
         let tau = (self.config.coil_time_constant_ms * 1e-3).max(1e-6);

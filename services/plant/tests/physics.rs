@@ -330,3 +330,37 @@ fn true_flow_is_steady_times_pulsation_plus_disturbances() {
     let n1 = full.true_flow_with_noise(&q, 0.0, &s.flow_noise) - full.true_flow(&q, 0.0);
     assert!(n0.norm() > 0.0 && n1.norm() > 0.0 && n0 != n1);
 }
+
+#[test]
+fn a_command_delay_drives_the_previous_command_first() {
+    let m = model(FlowMap::zero(), linear_only(), 3);
+    let start = m.initial_state(ra_start(), 0.3);
+    let previous = currents(0.02, 9);
+    let next = currents(-0.02, 9);
+    let delay_s = 0.4 * FRAME_S;
+
+    // Zero delay is exactly `step`.
+    let (mut plain, mut undelayed) = (start.clone(), start.clone());
+    m.step(&mut plain, &next, FRAME_S);
+    m.step_with_command_delay(&mut undelayed, &previous, &next, FRAME_S, 0.0);
+    assert_eq!(plain, undelayed);
+
+    // A delay is the previous command for that long, then the new one for the rest.
+    let (mut split, mut delayed) = (start.clone(), start.clone());
+    m.step(&mut split, &previous, delay_s);
+    m.step(&mut split, &next, FRAME_S - delay_s);
+    m.step_with_command_delay(&mut delayed, &previous, &next, FRAME_S, delay_s);
+    assert_eq!(split.position_m, delayed.position_m);
+    assert_eq!(split.coil_currents_a, delayed.coil_currents_a);
+    assert!((delayed.time_s - FRAME_S).abs() < 1e-12);
+    assert_ne!(
+        delayed.position_m, plain.position_m,
+        "the delay changed nothing"
+    );
+
+    // A delay of the whole frame (or more) keeps the previous command for the frame.
+    let (mut held, mut whole) = (start.clone(), start);
+    m.step(&mut held, &previous, FRAME_S);
+    m.step_with_command_delay(&mut whole, &previous, &next, FRAME_S, 2.0 * FRAME_S);
+    assert_eq!(held.position_m, whole.position_m);
+}

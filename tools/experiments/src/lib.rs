@@ -362,6 +362,9 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
     let dt = scenario.frame_period_s();
     let frames = (scenario.run.duration_s / dt).ceil() as u64;
     let mut applied = [0.0; MAX_COILS];
+    // What the coils drive during the command delay: the command before the current one.
+    let mut previous_applied = [0.0; MAX_COILS];
+    let command_delay_s = plant_config.command_delay_ms * 1e-3;
     let mut trace = Vec::with_capacity(frames as usize + 1);
     let now = std::time::Instant::now();
     // The camera's latency as the plant applies it: frame k shows the state of frame k − L,
@@ -408,7 +411,8 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
                 *coil = ma_to_amps(amps_to_ma(*current));
             }
         }
-        model.step(&mut state, &applied, dt);
+        model.step_with_command_delay(&mut state, &previous_applied, &applied, dt, command_delay_s);
+        previous_applied = applied;
     }
     Ok(trace)
 }
