@@ -119,6 +119,12 @@ struct MatrixArgs {
     /// `[plant.camera] latency_frames`: a whole number of frame periods, e.g. 100 at 10 Hz.
     #[arg(long)]
     camera_latency_ms: Option<f64>,
+    /// Delay from a frame's capture to its command reaching the coils inside each frame (ms,
+    /// below the frame period: inference, control, serial link), instead of none: sets the
+    /// twin's `[plant] command_delay_ms` and tells control, as a lab would measure it
+    /// (`[control.latency] unstamped_delay_ms`), e.g. 60 at 10 Hz for the paper's pipeline.
+    #[arg(long)]
+    command_delay_ms: Option<f64>,
     /// Standard deviation of the twin's per-coil gain error that control does not know
     /// (`[plant.physics] coil_gain_error_std`, a fraction: 0.1 for 10 %) instead of the base
     /// scenario's.
@@ -584,6 +590,20 @@ fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
             &["plant", "camera", "latency_frames"],
             toml::Value::Integer(frames.round() as i64),
         )?;
+    }
+    if let Some(delay_ms) = args.command_delay_ms {
+        anyhow::ensure!(
+            delay_ms.is_finite() && delay_ms >= 0.0 && delay_ms < base.run.frame_period_ms,
+            "--command-delay-ms must be >= 0 and below the frame period ({} ms; whole frames of \
+             delay are --camera-latency-ms), got {delay_ms}",
+            base.run.frame_period_ms
+        );
+        for path in [
+            &["plant", "command_delay_ms"][..],
+            &["control", "latency", "unstamped_delay_ms"][..],
+        ] {
+            set_in_table(&mut base.sections, path, toml::Value::Float(delay_ms))?;
+        }
     }
     if let Some(std) = args.coil_gain_error {
         anyhow::ensure!(

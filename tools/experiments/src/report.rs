@@ -572,10 +572,16 @@ pub fn table_header(mode: &str, base: &Scenario) -> anyhow::Result<String> {
         .map_or(String::new(), |gap| {
             format!(", capsule on the floor ({:.0} µm gap)", gap * 1e6)
         });
+    let command_delay = get(&["plant", "command_delay_ms"])
+        .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+        .filter(|ms| *ms > 0.0)
+        .map_or(String::new(), |ms| {
+            format!(" + {ms} ms from capture to the coils inside each frame")
+        });
     let rig = base.rig()?;
     Ok(format!(
-        "{mode}, {} ms frame period, {} ms extra camera latency ({}), per-coil gain error σ {:.0} % \
-         unknown to control{floor}, rig {} ({})",
+        "{mode}, {} ms frame period, {} ms extra camera latency{command_delay} ({}), per-coil gain \
+         error σ {:.0} % unknown to control{floor}, rig {} ({})",
         base.run.frame_period_ms,
         frames as f64 * base.run.frame_period_ms,
         if compensated {
