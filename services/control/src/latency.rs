@@ -350,7 +350,7 @@ impl StatePredictor {
                 None => 1.0,
             };
             let h = span / pieces;
-            let (phi, gamma) = self.transition(h);
+            let (phi, gamma) = nominal_transition(&self.model, h);
             for piece in 0..pieces as usize {
                 let mid_s = t as f64 * 1e-9 + (piece as f64 + 0.5) * h;
                 let (fitted, basis) = match &self.pulsation {
@@ -377,23 +377,24 @@ impl StatePredictor {
         model.time_ns = to_ns.max(model.time_ns);
         model
     }
+}
 
-    /// Exact transition of (p, v, d) over `h` seconds, and the response to a constant
-    /// acceleration input (F + c u)/m.
-    fn transition(&self, h: f64) -> (Matrix3<f64>, Vector3<f64>) {
-        let m = self.model.mass_kg;
-        let a = self.model.linear_drag_n_s_per_m / m;
-        // (1 − e^{−ah})/a and (h − (1 − e^{−ah})/a)/a, with their a → 0 limits h and h²/2.
-        let (decay, first, second) = if a * h < 1e-6 {
-            (1.0 - a * h, h, h * h / 2.0)
-        } else {
-            let decay = (-a * h).exp();
-            let first = (1.0 - decay) / a;
-            (decay, first, (h - first) / a)
-        };
-        let phi = Matrix3::new(1.0, first, second / m, 0.0, decay, first / m, 0.0, 0.0, 1.0);
-        (phi, Vector3::new(second, first, 0.0))
-    }
+/// Exact transition of the nominal model's (p, v, d) over `h` seconds, d a force held over
+/// the step, and the response to a constant acceleration input (F + c u)/m. Shared by the
+/// latency predictor and the velocity observer.
+pub(crate) fn nominal_transition(model: &NominalModel, h: f64) -> (Matrix3<f64>, Vector3<f64>) {
+    let m = model.mass_kg;
+    let a = model.linear_drag_n_s_per_m / m;
+    // (1 − e^{−ah})/a and (h − (1 − e^{−ah})/a)/a, with their a → 0 limits h and h²/2.
+    let (decay, first, second) = if a * h < 1e-6 {
+        (1.0 - a * h, h, h * h / 2.0)
+    } else {
+        let decay = (-a * h).exp();
+        let first = (1.0 - decay) / a;
+        (decay, first, (h - first) / a)
+    };
+    let phi = Matrix3::new(1.0, first, second / m, 0.0, decay, first / m, 0.0, 0.0, 1.0);
+    (phi, Vector3::new(second, first, 0.0))
 }
 
 #[cfg(test)]

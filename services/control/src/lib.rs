@@ -6,6 +6,7 @@
 pub mod coil_gains;
 pub mod controllers;
 pub mod latency;
+pub mod observer;
 pub mod operator;
 pub mod reference;
 pub mod rig3d;
@@ -44,6 +45,7 @@ use crate::controllers::{
     PidGains, SmcGains,
 };
 use crate::latency::{LatencyConfig, StatePredictor};
+use crate::observer::{ObserverConfig, VelocityEstimate, VelocityObserver};
 use crate::operator::{Operator, OperatorEventRow};
 use crate::reference::Reference;
 
@@ -70,8 +72,14 @@ pub struct ControlConfig {
     pub hold_timeout_ms: f64,
     /// Fastest believable robot speed; larger pose jumps are rejected.
     pub max_speed_mps: f64,
-    /// Time constant of the velocity estimate's low-pass filter.
+    /// Where the controllers' velocity comes from: low-passed differences of the fed
+    /// positions, or the model-based observer (`[control.observer]`), which predicts it from
+    /// the forces the coils made and corrects it with each pose.
+    pub velocity_estimate: VelocityEstimate,
+    /// Time constant of the differences' low-pass filter (`velocity_estimate = "differences"`).
     pub velocity_filter_ms: f64,
+    /// The velocity observer (`velocity_estimate = "observer"`).
+    pub observer: ObserverConfig,
     /// Current and power limits the allocation respects, one rating for every coil; default:
     /// each coil's own from the rig file (`Rig::coil_ratings`).
     pub limits: Option<CoilLimits>,
@@ -129,7 +137,9 @@ impl Default for ControlConfig {
             omega0_n_per_t: 0.05,
             hold_timeout_ms: 300.0,
             max_speed_mps: 0.3,
+            velocity_estimate: VelocityEstimate::Differences,
             velocity_filter_ms: 30.0,
+            observer: ObserverConfig::default(),
             limits: None,
             constrained_allocation: false,
             field_row_weight: 1e4,
@@ -224,6 +234,8 @@ pub struct ControlLoop {
     last_mode: ControlMode,
     /// Predicts the state at actuation time from delayed poses and the issued forces.
     predictor: StatePredictor,
+    /// The velocity from the forces and the fed positions (`velocity_estimate = "observer"`).
+    observer: Option<VelocityObserver>,
     /// Actuation time and currents of the last tracking command (the slew limit's start).
     last_tracked: Option<(u64, [f64; MAX_COILS])>,
     /// Poses and flow estimates that broke the contract (bad flag bytes); treated as invalid.
@@ -281,6 +293,9 @@ impl ControlLoop {
             ..model
         };
         let predictor = StatePredictor::new(config.latency.clone(), moving);
+        let observer = (config.velocity_estimate == VelocityEstimate::Observer).then(|| {
+            VelocityObserver::new(config.observer.clone(), moving, config.latency.pulsation_hz)
+        });
         let config_heading = config.field_heading_deg.to_radians();
         let rotation_time_constant_s =
             physics::rotational_drag(viscosity_pa_s, robot.length_m, robot.diameter_m / 2.0)
@@ -307,6 +322,7 @@ impl ControlLoop {
             velocity: Vector2::zeros(),
             last_mode: ControlMode::Safe,
             predictor,
+            observer,
             last_tracked: None,
             violations: ContractViolations::default(),
             gain_estimator,
@@ -728,6 +744,9 @@ impl ControlLoop {
         let tracking = self.last_mode == ControlMode::Track;
         if !tracking {
             self.predictor.reset();
+            if let Some(observer) = &mut self.observer {
+                observer.reset();
+            }
         }
         self.last_good = Some((t_ns, measured));
         let gain_update = self.learn_gains(pose, t_ns);
@@ -766,6 +785,9 @@ impl ControlLoop {
             }
         };
         self.last_fed = Some((fed_ns, position_m));
+        if let Some(observer) = &mut self.observer {
+            self.velocity = observer.update(fed_ns, position_m, flow_mps);
+        }
         let input = ControlInput {
             dt_s: dt,
             delay_s: pose_age_s,
@@ -795,6 +817,9 @@ impl ControlLoop {
         self.record_issued(actuation_ns, currents);
         self.controller.applied(achieved);
         self.predictor.commanded(actuation_ns, achieved, flow_mps);
+        if let Some(observer) = &mut self.observer {
+            observer.applied(achieved, flow_mps);
+        }
         self.last_mode = ControlMode::Track;
         Decision {
             command,
@@ -871,6 +896,12 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
     if let Some((name, why)) = config.gain_estimation.invalid_field() {
         return Err(ConfigError::new(format!(
             "scenario {}: [control.gain_estimation] {name} {why}",
+            scenario.path.display()
+        )));
+    }
+    if let Some((name, why)) = config.observer.invalid_field() {
+        return Err(ConfigError::new(format!(
+            "scenario {}: [control.observer] {name} {why}",
             scenario.path.display()
         )));
     }

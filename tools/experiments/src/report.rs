@@ -578,10 +578,19 @@ pub fn table_header(mode: &str, base: &Scenario) -> anyhow::Result<String> {
         .map_or(String::new(), |ms| {
             format!(" + {ms} ms from capture to the coils inside each frame")
         });
+    let observer = match get(&["control", "velocity_estimate"]).and_then(toml::Value::as_str) {
+        Some("observer") => ", velocity from the model-based observer",
+        _ => "",
+    };
+    let slew = get(&["control", "max_current_slew_a_per_s"])
+        .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+        .map_or(String::new(), |rate| {
+            format!(", coil currents slew-limited to {rate} A/s")
+        });
     let rig = base.rig()?;
     Ok(format!(
         "{mode}, {} ms frame period, {} ms extra camera latency{command_delay} ({}), per-coil gain \
-         error σ {:.0} % unknown to control{floor}, rig {} ({})",
+         error σ {:.0} % unknown to control{floor}{observer}{slew}, rig {} ({})",
         base.run.frame_period_ms,
         frames as f64 * base.run.frame_period_ms,
         if compensated {
