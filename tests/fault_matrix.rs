@@ -10,9 +10,9 @@
 //!
 //! "Safe" means the board drove every coil to zero: a zero frame at the emulated Teensy or the
 //! board's own watchdog zeroing (`teensy_events.csv`), never merely some event after the fault.
-//! Time to safe runs from the last frame the board received before the fault (where the
-//! deadline starts) to that zero; it must stay within the deadline plus
-//! `SCHEDULING_TOLERANCE_MS`.
+//! Time to safe runs from where the deadline starts to that zero: the last frame the board
+//! received before the fault, or for a firmware stall the stall itself (the hardware watchdog's
+//! last feed, logged as `hang`); it must stay within the deadline plus `SCHEDULING_TOLERANCE_MS`.
 //!
 //! Table: `cargo test --release --workspace --test fault_matrix -- --nocapture`
 //! Long soak (≥ 100 kills): `MILLINAV_SOAK_KILLS=120 cargo test --release --workspace --test fault_matrix soak -- --nocapture`
@@ -223,6 +223,17 @@ fn inject(run: &RunSet, fault: Fault) -> FaultOutcome {
         .rfind(|e| e.is_frame() && e.monotonic_ns <= injected)
         .map(|e| e.monotonic_ns)
         .unwrap_or_else(|| panic!("no frame reached the board before {label} of {service}"));
+    // A stalled firmware stops feeding the hardware watchdog when it stalls, which is when the
+    // board logs `hang`; the plant hands the signal to the board between its own steps, so that
+    // moment can trail the last frame by a lockstep wait that is no part of the board's bound.
+    let deadline_start = match fault {
+        Fault::LinkHang => teensy
+            .iter()
+            .find(|e| e.monotonic_ns > injected && e.kind == "hang")
+            .map(|e| e.monotonic_ns)
+            .unwrap_or_else(|| panic!("the board never logged its stall after {label}")),
+        _ => last_frame_before,
+    };
     // Safe: the board itself drove zero (a zero frame, or its watchdog), not any event after
     // the fault. A coilbus that comes back and resumes commanding without the coils ever
     // reaching zero fails here.
@@ -246,7 +257,7 @@ fn inject(run: &RunSet, fault: Fault) -> FaultOutcome {
         service,
         signal: label,
         detection_ms: ms(injected, detected_ns),
-        safe_ms: ms(last_frame_before, safe_ns),
+        safe_ms: ms(deadline_start, safe_ns),
         resume_ms: ms(injected, resumed.monotonic_ns),
         safe_bound_ms,
     }
