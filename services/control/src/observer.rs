@@ -46,6 +46,12 @@ pub struct ObserverConfig {
     /// changes and passes more localization noise into the velocity (at 100 Hz: 0.03 doubles
     /// the coil steps of PID, 0.003 halves them and lags in flow; README "Coil effort").
     pub unknown_flow_change_mps_per_sqrt_s: f64,
+    /// Harmonics of the pump's rate the pulsation oscillator carries (1 to
+    /// [`MAX_PULSATION_HARMONICS`]; used only with `[control.latency] pulsation_hz`). A
+    /// peristaltic pump's flow is no sine: each roller pass pinches the tube and the flow turns
+    /// sharply, so its stroke carries harmonics (a rectified sine's second is a fifth of its
+    /// first, its third a twelfth). 1 models the fundamental alone.
+    pub pulsation_harmonics: usize,
 }
 
 impl Default for ObserverConfig {
@@ -53,6 +59,7 @@ impl Default for ObserverConfig {
         Self {
             position_noise_mm: 0.02,
             unknown_flow_change_mps_per_sqrt_s: 0.01,
+            pulsation_harmonics: 1,
         }
     }
 }
@@ -72,6 +79,15 @@ impl ObserverConfig {
             (!(value.is_finite() && value > 0.0))
                 .then(|| (name, format!("must be finite and > 0, got {value}")))
         })
+        .or_else(|| {
+            let harmonics = self.pulsation_harmonics;
+            (!(1..=MAX_PULSATION_HARMONICS).contains(&harmonics)).then(|| {
+                (
+                    "pulsation_harmonics",
+                    format!("must be 1 to {MAX_PULSATION_HARMONICS}, got {harmonics}"),
+                )
+            })
+        })
     }
 }
 
@@ -80,20 +96,27 @@ const INITIAL_VELOCITY_STD_MPS: f64 = 0.01;
 /// Prior spread of the unknown push at start, steady and pulsatile, as a flow speed (m/s).
 const INITIAL_FLOW_STD_MPS: f64 = 0.1;
 
-/// Per axis: position, velocity, steady push, and the pulsatile push as an oscillator at the
-/// pump's rate (its two phases). Without a pulsation rate the oscillator stays at zero.
-const STATES: usize = 5;
+/// Most harmonics of the pump's rate the observer models (`pulsation_harmonics`).
+pub const MAX_PULSATION_HARMONICS: usize = 3;
+/// Per axis: position, velocity, steady push, and the pulsatile push as one oscillator per
+/// harmonic of the pump's rate (two phases each). Oscillators not modelled stay at zero.
+const STATES: usize = 3 + 2 * MAX_PULSATION_HARMONICS;
+/// Index of the first oscillator state.
+const FIRST_OSCILLATOR: usize = 3;
 type StateVector = SVector<f64, STATES>;
 type StateMatrix = SMatrix<f64, STATES, STATES>;
 
-/// Kalman filter on (p, v, d, z₁, z₂) per axis, d the steady push the model does not know and
-/// z₁ the pulsatile one (z₂ its quadrature); both axes share the covariance (same model, same
+/// Kalman filter on (p, v, d, z₁, z₂, …) per axis, d the steady push the model does not know and
+/// z₁ the pulsatile one at the pump's rate (z₂ its quadrature; further pairs its harmonics, each
+/// adding its push to d); both axes share the covariance (same model, same
 /// noise).
 pub struct VelocityObserver {
     config: ObserverConfig,
     model: NominalModel,
     /// The pump's stroke rate (rad/s), when known (`[control.latency] pulsation_hz`).
     pulsation_rad_s: Option<f64>,
+    /// Oscillators in use: the configured harmonics with a known rate, else none.
+    harmonics: usize,
     state: Option<ObserverState>,
     /// Force held since the last pose (the achieved force of the last command) and the flow
     /// the nominal drag acts against.
@@ -114,10 +137,16 @@ impl VelocityObserver {
     /// `model` is the moving body's (mass including the added mass); `pulsation_hz` the pump's
     /// stroke rate when the lab knows it.
     pub fn new(config: ObserverConfig, model: NominalModel, pulsation_hz: Option<f64>) -> Self {
+        let harmonics = if pulsation_hz.is_some() {
+            config.pulsation_harmonics.clamp(1, MAX_PULSATION_HARMONICS)
+        } else {
+            0
+        };
         Self {
             config,
             model,
             pulsation_rad_s: pulsation_hz.map(|hz| std::f64::consts::TAU * hz),
+            harmonics,
             state: None,
             held_force_n: Vector2::zeros(),
             held_flow_mps: Vector2::zeros(),
@@ -151,9 +180,13 @@ impl VelocityObserver {
         augmented[(0, 1)] = 1.0;
         augmented[(1, 1)] = -self.model.linear_drag_n_s_per_m / m;
         augmented[(1, 2)] = 1.0 / m;
-        augmented[(1, 3)] = 1.0 / m;
-        augmented[(3, 4)] = -omega;
-        augmented[(4, 3)] = omega;
+        for k in 0..self.harmonics {
+            let (z1, z2) = (FIRST_OSCILLATOR + 2 * k, FIRST_OSCILLATOR + 2 * k + 1);
+            let rate = omega * (k + 1) as f64;
+            augmented[(1, z1)] = 1.0 / m;
+            augmented[(z1, z2)] = -rate;
+            augmented[(z2, z1)] = rate;
+        }
         augmented[(1, STATES)] = 1.0 / m;
         let exp = (augmented * h).exp();
         let phi: StateMatrix = exp.fixed_view::<STATES, STATES>(0, 0).into_owned();
@@ -172,20 +205,16 @@ impl VelocityObserver {
         let c = self.model.linear_drag_n_s_per_m;
         let measurement_var = (self.config.position_noise_mm * 1e-3).powi(2);
         let push_var = |speed_mps: f64| (c * speed_mps).powi(2);
-        let pulsatile = if self.pulsation_rad_s.is_some() {
-            1.0
-        } else {
-            0.0
-        };
+        let oscillators = FIRST_OSCILLATOR..FIRST_OSCILLATOR + 2 * self.harmonics;
         let Some(mut state) = self.state.filter(|s| time_ns >= s.time_ns) else {
             self.held_flow_mps = flow_mps;
-            let prior = StateVector::from([
-                measurement_var,
-                INITIAL_VELOCITY_STD_MPS.powi(2),
-                push_var(INITIAL_FLOW_STD_MPS),
-                push_var(INITIAL_FLOW_STD_MPS) * pulsatile,
-                push_var(INITIAL_FLOW_STD_MPS) * pulsatile,
-            ]);
+            let mut prior = StateVector::zeros();
+            prior[0] = measurement_var;
+            prior[1] = INITIAL_VELOCITY_STD_MPS.powi(2);
+            prior[2] = push_var(INITIAL_FLOW_STD_MPS);
+            for i in oscillators {
+                prior[i] = push_var(INITIAL_FLOW_STD_MPS);
+            }
             self.state = Some(ObserverState {
                 time_ns,
                 axes: [0, 1].map(|axis| {
@@ -207,8 +236,9 @@ impl VelocityObserver {
             let change = push_var(self.config.unknown_flow_change_mps_per_sqrt_s) * h;
             state.covariance = phi * state.covariance * phi.transpose();
             state.covariance[(2, 2)] += change;
-            state.covariance[(3, 3)] += change * pulsatile;
-            state.covariance[(4, 4)] += change * pulsatile;
+            for i in oscillators {
+                state.covariance[(i, i)] += change;
+            }
         }
         let mut row = SMatrix::<f64, 1, STATES>::zeros();
         row[0] = 1.0;
@@ -250,7 +280,22 @@ mod tests {
         noise_m: f64,
         pulsation_hz: Option<f64>,
     ) -> (f64, f64) {
-        let mut observer = VelocityObserver::new(ObserverConfig::default(), MODEL, pulsation_hz);
+        track_with(force, push, period_s, noise_m, pulsation_hz, 1)
+    }
+
+    fn track_with(
+        force: impl Fn(f64) -> f64,
+        push: impl Fn(f64) -> f64,
+        period_s: f64,
+        noise_m: f64,
+        pulsation_hz: Option<f64>,
+        pulsation_harmonics: usize,
+    ) -> (f64, f64) {
+        let config = ObserverConfig {
+            pulsation_harmonics,
+            ..Default::default()
+        };
+        let mut observer = VelocityObserver::new(config, MODEL, pulsation_hz);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         let noise = Normal::new(0.0, noise_m).unwrap();
         let (mut p, mut v) = (0.0, 0.0);
@@ -320,12 +365,33 @@ mod tests {
     }
 
     #[test]
+    fn a_peristaltic_push_is_followed_closer_with_its_harmonics() {
+        // A rectified sine at 3 Hz strokes (a peristaltic pump's pinch), ±3.5 cm/s at 20 cP.
+        let push = |t: f64| {
+            let stroke = (std::f64::consts::PI * 3.0 * t).sin().abs();
+            5.6e-4 * 0.035 * (stroke - 2.0 / std::f64::consts::PI)
+                / (1.0 - 2.0 / std::f64::consts::PI)
+        };
+        let (fundamental, _) = track_with(|_| 0.0, push, 0.01, 2e-5, Some(3.0), 1);
+        let (harmonics, _) = track_with(|_| 0.0, push, 0.01, 2e-5, Some(3.0), 3);
+        assert!(
+            harmonics < 0.8 * fundamental,
+            "three harmonics {harmonics:.2e} m/s vs the fundamental alone {fundamental:.2e} m/s"
+        );
+    }
+
+    #[test]
     fn out_of_range_fields_are_named() {
         let config = ObserverConfig {
             position_noise_mm: 0.0,
             ..Default::default()
         };
         assert_eq!(config.invalid_field().unwrap().0, "position_noise_mm");
+        let config = ObserverConfig {
+            pulsation_harmonics: MAX_PULSATION_HARMONICS + 1,
+            ..Default::default()
+        };
+        assert_eq!(config.invalid_field().unwrap().0, "pulsation_harmonics");
         assert!(ObserverConfig::default().invalid_field().is_none());
     }
 }
