@@ -279,16 +279,6 @@ mod tests {
         period_s: f64,
         noise_m: f64,
         pulsation_hz: Option<f64>,
-    ) -> (f64, f64) {
-        track_with(force, push, period_s, noise_m, pulsation_hz, 1)
-    }
-
-    fn track_with(
-        force: impl Fn(f64) -> f64,
-        push: impl Fn(f64) -> f64,
-        period_s: f64,
-        noise_m: f64,
-        pulsation_hz: Option<f64>,
         pulsation_harmonics: usize,
     ) -> (f64, f64) {
         let config = ObserverConfig {
@@ -346,7 +336,7 @@ mod tests {
                 -2e-5
             }
         };
-        let (observer, filtered) = track(force, |_| 0.0, 0.01, 2e-5, None);
+        let (observer, filtered) = track(force, |_| 0.0, 0.01, 2e-5, None, 1);
         assert!(
             observer * 3.0 < filtered,
             "observer {observer:.2e} m/s vs filtered differences {filtered:.2e} m/s"
@@ -357,7 +347,7 @@ mod tests {
     fn an_unknown_pulsating_push_is_followed() {
         // ±3.5 cm/s of unmapped flow at 3 Hz at 20 cP: the velocity it makes is ≈ 2 cm/s.
         let push = |t: f64| 5.6e-4 * 0.035 * (std::f64::consts::TAU * 3.0 * t).sin();
-        let (observer, filtered) = track(|_| 0.0, push, 0.01, 2e-5, Some(3.0));
+        let (observer, filtered) = track(|_| 0.0, push, 0.01, 2e-5, Some(3.0), 1);
         assert!(
             observer < 0.1 * 0.02 && observer < filtered,
             "observer {observer:.2e} m/s vs filtered differences {filtered:.2e} m/s"
@@ -372,8 +362,8 @@ mod tests {
             5.6e-4 * 0.035 * (stroke - 2.0 / std::f64::consts::PI)
                 / (1.0 - 2.0 / std::f64::consts::PI)
         };
-        let (fundamental, _) = track_with(|_| 0.0, push, 0.01, 2e-5, Some(3.0), 1);
-        let (harmonics, _) = track_with(|_| 0.0, push, 0.01, 2e-5, Some(3.0), 3);
+        let (fundamental, _) = track(|_| 0.0, push, 0.01, 2e-5, Some(3.0), 1);
+        let (harmonics, _) = track(|_| 0.0, push, 0.01, 2e-5, Some(3.0), 3);
         assert!(
             harmonics < 0.8 * fundamental,
             "three harmonics {harmonics:.2e} m/s vs the fundamental alone {fundamental:.2e} m/s"
