@@ -108,8 +108,7 @@ type StateMatrix = SMatrix<f64, STATES, STATES>;
 
 /// Kalman filter on (p, v, d, z₁, z₂, …) per axis, d the steady push the model does not know and
 /// z₁ the pulsatile one at the pump's rate (z₂ its quadrature; further pairs its harmonics, each
-/// adding its push to d); both axes share the covariance (same model, same
-/// noise).
+/// pushing like z₁); both axes share the covariance (same model, same noise).
 pub struct VelocityObserver {
     config: ObserverConfig,
     model: NominalModel,
