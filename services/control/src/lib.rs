@@ -597,13 +597,15 @@ impl ControlLoop {
         let position = Vector2::new(pose.position_m[0], pose.position_m[1]);
         // The commands that acted over the window before the capture, newest first, down to
         // the one in effect when the window opened: the field must have held its direction
-        // through all of them, or the capsule is still turning.
+        // through all of them, or the capsule is still turning. A command that reaches the
+        // coils at the capture instant has not acted on what the frame shows (in lockstep a
+        // delayed frame's capture time is a later command's actuation time).
         let window_start = capture_ns.saturating_sub(self.alignment_window_ns);
         let mut in_window = self
             .issued
             .iter()
             .rev()
-            .skip_while(|(acted_ns, _)| *acted_ns > capture_ns);
+            .skip_while(|(acted_ns, _)| *acted_ns >= capture_ns);
         let (acted_ns, in_effect) = in_window.next()?;
         let mut opened = *acted_ns <= window_start;
         let in_effect = effective(in_effect);
@@ -1587,23 +1589,32 @@ mod tests {
         assert!(wrap_angle(heading - FRAC_PI_4).abs() < 1e-9, "{heading}");
     }
 
-    #[test]
-    fn headings_teach_the_loop_the_coil_gains_and_the_field_then_holds_its_heading() {
-        let truth = [
-            1.05, 0.92, 1.10, 0.97, 0.88, 1.04, 1.12, 0.95, 1.01, 0.90, 1.07, 0.99,
-        ];
+    /// Per-coil gains of the "true" coils in the gain-learning tests (the model's are 1).
+    const TRUE_GAINS: [f64; 12] = [
+        1.05, 0.92, 1.10, 0.97, 0.88, 1.04, 1.12, 0.95, 1.01, 0.90, 1.07, 0.99,
+    ];
+
+    /// The in-plane field the true coils make at `p`.
+    fn true_field(rig: &Rig, p: &Vector2<f64>, currents: &[f64; MAX_COILS]) -> Vector2<f64> {
+        let p3 = Vector3::new(p.x, p.y, 0.0);
+        (0..12).fold(Vector2::zeros(), |b, k| {
+            b + rig.coil_field.field_per_amp(k, &p3).xy() * (currents[k] * TRUE_GAINS[k])
+        })
+    }
+
+    /// A loop that learned the coil gains from 800 frames at 10 Hz, each command random, each
+    /// frame's heading the true field's of the command that acted before its capture. With
+    /// `delayed`, frames come one frame late, as in lockstep with camera latency: each is
+    /// captured at the instant the next command reaches the coils, and that command is
+    /// already recorded when the frame arrives.
+    fn taught_gains(delayed: bool) -> ControlLoop {
         let mut c = beyond_loop(|c| {
             c.gain_estimation.enabled = true;
             c.gain_estimation.heading_noise_deg = 0.5;
         });
         let rig = c.rig.clone();
-        let true_field = |p: &Vector2<f64>, currents: &[f64; MAX_COILS]| {
-            let p3 = Vector3::new(p.x, p.y, 0.0);
-            (0..12).fold(Vector2::zeros(), |b, k| {
-                b + rig.coil_field.field_per_amp(k, &p3).xy() * (currents[k] * truth[k])
-            })
-        };
         let mut uniform = crate::coil_gains::tests::uniform_source(7);
+        let mut previous: Option<[f64; MAX_COILS]> = None;
         for k in 0..800u64 {
             let t_ns = k * 100_000_000;
             let mut currents = [0.0; MAX_COILS];
@@ -1612,33 +1623,62 @@ mod tests {
             }
             c.record_issued(t_ns, currents);
             let p = Vector2::new(uniform() * 0.02, uniform() * 0.02);
-            let b = true_field(&p, &currents);
-            let mut frame = pose(k, (t_ns + 50_000_000) as f64 * 1e-9, p.x, p.y);
+            let (acted, capture_ns) = match (delayed, previous) {
+                (false, _) => (currents, t_ns + 50_000_000),
+                (true, Some(before)) => (before, t_ns),
+                (true, None) => {
+                    previous = Some(currents);
+                    continue;
+                }
+            };
+            previous = Some(currents);
+            let b = true_field(&rig, &p, &acted);
+            let mut frame = pose(k, capture_ns as f64 * 1e-9, p.x, p.y);
             frame.heading_rad = b.y.atan2(b.x) + uniform() * 0.5f64.to_radians();
             c.learn_gains(&frame, frame.stamp.capture_time_ns);
         }
-        // Headings tell the gains relative to each other (mean 1, see coil_gains).
-        let mean = truth.iter().sum::<f64>() / 12.0;
+        c
+    }
+
+    /// Headings tell the gains relative to each other (mean 1, see coil_gains).
+    fn assert_learned_true_gains(c: &ControlLoop) {
+        let mean = TRUE_GAINS.iter().sum::<f64>() / 12.0;
         let learned = c.coil_gains().unwrap();
-        for (k, (g, t)) in learned.iter().zip(truth).enumerate() {
+        for (k, (g, t)) in learned.iter().zip(TRUE_GAINS).enumerate() {
             assert!(
                 (g - t / mean).abs() < 0.01,
                 "coil {k}: {g:.4} vs {:.4}",
                 t / mean
             );
         }
+    }
+
+    /// A delayed frame is paired with the command that acted before its capture, not with the
+    /// one that reaches the coils at that instant (which was the case before: with one frame
+    /// of camera latency at 10 Hz, learning from the wrong command's field made the scheduled
+    /// SMC-DOB ring in still fluid).
+    #[test]
+    fn a_delayed_frame_teaches_the_gains_of_the_command_that_acted_before_its_capture() {
+        assert_learned_true_gains(&taught_gains(true));
+    }
+
+    #[test]
+    fn headings_teach_the_loop_the_coil_gains_and_the_field_then_holds_its_heading() {
+        let c = taught_gains(false);
+        let rig = c.rig.clone();
+        assert_learned_true_gains(&c);
         // Driving hard, the true field now points where the loop asks.
         let position = Vector2::new(0.012, 0.02);
         let force = Vector2::new(1e-4, -2e-4);
         let (currents, _) = c.allocate(&position, FRAC_PI_4, &force, None);
         let strongest = currents.iter().map(|i| i.abs()).fold(0.0, f64::max);
         assert!(strongest > 3.0, "{currents:?}");
-        let b = true_field(&position, &currents);
+        let b = true_field(&rig, &position, &currents);
         let off = wrap_angle(b.y.atan2(b.x) - FRAC_PI_4).to_degrees();
         assert!(off.abs() < 3.0, "field {off:.1}° off its heading");
         let unaware = beyond_loop(|_| {});
         let (currents, _) = unaware.allocate(&position, FRAC_PI_4, &force, None);
-        let b = true_field(&position, &currents);
+        let b = true_field(&rig, &position, &currents);
         let unaware_off = wrap_angle(b.y.atan2(b.x) - FRAC_PI_4).to_degrees();
         assert!(
             unaware_off.abs() > 3.0 * off.abs(),
