@@ -37,9 +37,15 @@ pub struct LatencyConfig {
     /// Poses older than this at actuation time are not used (ms): the loop holds, then goes
     /// safe, as for a lost pose.
     pub max_pose_age_ms: f64,
-    /// Time constant of the predictor's disturbance estimate (ms); 0 turns it off (plain
-    /// Smith predictor). Slower than the controllers' own observers, so that it only carries
-    /// the steady part of what the model lacks.
+    /// Time constant of the predictor's disturbance estimate in multiples of each pose's
+    /// measured delay. An estimate learned from poses that old chases stale information when it
+    /// is faster than a few delays (at 1x flow runs were lost), and lags the flow's own changes
+    /// when it is much slower (README, "Camera latency and its compensation"). 0: the fixed
+    /// `disturbance_time_constant_ms`.
+    pub disturbance_delays: f64,
+    /// The disturbance estimate's time constant when it is shorter than `disturbance_delays`
+    /// delays (ms; with `disturbance_delays = 0`, its time constant). 0 with
+    /// `disturbance_delays = 0` turns it off (plain Smith predictor).
     pub disturbance_time_constant_ms: f64,
     /// Pulsation rate of the flow (Hz; the pump's stroke rate, which the lab sets): the
     /// disturbance estimate then also carries a sinusoid at this rate (amplitude and phase
@@ -54,7 +60,8 @@ impl Default for LatencyConfig {
             compensate: true,
             unstamped_delay_ms: 0.0,
             max_pose_age_ms: 500.0,
-            disturbance_time_constant_ms: 1000.0,
+            disturbance_delays: 4.0,
+            disturbance_time_constant_ms: 100.0,
             pulsation_hz: None,
         }
     }
@@ -63,9 +70,10 @@ impl Default for LatencyConfig {
 impl LatencyConfig {
     /// The first field that is out of range, with why.
     pub fn invalid_field(&self) -> Option<(&'static str, String)> {
-        let checks: [(&'static str, f64, bool); 3] = [
+        let checks: [(&'static str, f64, bool); 4] = [
             ("unstamped_delay_ms", self.unstamped_delay_ms, false),
             ("max_pose_age_ms", self.max_pose_age_ms, true),
+            ("disturbance_delays", self.disturbance_delays, false),
             (
                 "disturbance_time_constant_ms",
                 self.disturbance_time_constant_ms,
@@ -230,14 +238,22 @@ impl StatePredictor {
         actuation_ns: u64,
         flow_mps: Vector2<f64>,
     ) -> Predicted {
+        let horizon_s = actuation_ns.saturating_sub(capture_ns) as f64 * 1e-9;
+        let tau_s = self.disturbance_time_constant_s(horizon_s);
         let mut now = match self.last {
             Some((previous, previous_position)) if capture_ns > previous.time_ns => {
                 let mut at_capture = self.propagate(previous, capture_ns, flow_mps);
                 let measured_motion = position_m - previous_position;
                 if self.pulsation.is_some() {
-                    self.fit_pulsation(&previous, &mut at_capture, measured_motion);
+                    self.fit_pulsation(&previous, &mut at_capture, measured_motion, tau_s);
                 } else {
-                    self.learn_disturbance(&previous, &mut at_capture, measured_motion);
+                    Self::learn_disturbance(
+                        &self.model,
+                        &previous,
+                        &mut at_capture,
+                        measured_motion,
+                        tau_s,
+                    );
                 }
                 at_capture
             }
@@ -264,19 +280,25 @@ impl StatePredictor {
                 + self.pulsation.as_ref().map_or(Vector2::zeros(), |fit| {
                     fit.force(actuation_ns as f64 * 1e-9)
                 }),
-            horizon_s: actuation_ns.saturating_sub(capture_ns) as f64 * 1e-9,
+            horizon_s,
         }
     }
 
+    /// The disturbance estimate's time constant for a pose `horizon_s` old at actuation, s.
+    fn disturbance_time_constant_s(&self, horizon_s: f64) -> f64 {
+        (self.config.disturbance_delays * horizon_s)
+            .max(self.config.disturbance_time_constant_ms * 1e-3)
+    }
+
     /// Moves d̂ towards the force that would have made the model's motion since `previous`
-    /// match the measured one (`measured_motion`), with the configured time constant.
+    /// match the measured one (`measured_motion`), with time constant `tau_s`.
     fn learn_disturbance(
-        &self,
+        model: &NominalModel,
         previous: &ModelState,
         at_capture: &mut ModelState,
         measured_motion: Vector2<f64>,
+        tau_s: f64,
     ) {
-        let tau_s = self.config.disturbance_time_constant_ms * 1e-3;
         if tau_s <= 0.0 {
             return;
         }
@@ -286,8 +308,7 @@ impl StatePredictor {
             let model_motion = at_capture.state[axis][0] - previous.state[axis][0];
             // A steady force d moves the body at d / c: the missing force behind a velocity
             // mismatch.
-            let missing =
-                (measured_motion[axis] - model_motion) / dt * self.model.linear_drag_n_s_per_m;
+            let missing = (measured_motion[axis] - model_motion) / dt * model.linear_drag_n_s_per_m;
             at_capture.state[axis][2] += alpha * missing;
         }
     }
@@ -300,13 +321,13 @@ impl StatePredictor {
         previous: &ModelState,
         at_capture: &mut ModelState,
         measured_motion: Vector2<f64>,
+        tau_s: f64,
     ) {
         let Some(fit) = self.pulsation.as_mut() else {
             return;
         };
         let dt = (at_capture.time_ns - previous.time_ns) as f64 * 1e-9;
-        let tau_s = (self.config.disturbance_time_constant_ms * 1e-3).max(1e-3);
-        let forgetting = (-dt / tau_s).exp();
+        let forgetting = (-dt / tau_s.max(1e-3)).exp();
         let regressor =
             Vector3::from_fn(|j, _| at_capture.sensitivity[j][0] - previous.sensitivity[j][0]);
         let p_phi = fit.covariance * regressor;
@@ -499,6 +520,7 @@ mod tests {
         let truth = simulate(&forces, d, 8.0);
         let worst_error = |disturbance_time_constant_ms: f64| {
             let config = LatencyConfig {
+                disturbance_delays: 0.0,
                 disturbance_time_constant_ms,
                 ..LatencyConfig::default()
             };
@@ -552,6 +574,25 @@ mod tests {
             steady > 10.0 * fitted,
             "steady only: {steady} m vs {fitted} m"
         );
+    }
+
+    /// The disturbance estimate keeps a few delays slower than the poses it learns from, and
+    /// never faster than its floor; with no delay factor its time constant is fixed.
+    #[test]
+    fn the_disturbance_time_constant_follows_the_delay() {
+        let scaled = StatePredictor::new(LatencyConfig::default(), MODEL);
+        assert!((scaled.disturbance_time_constant_s(0.06) - 0.24).abs() < 1e-12);
+        assert!((scaled.disturbance_time_constant_s(0.2) - 0.8).abs() < 1e-12);
+        assert!((scaled.disturbance_time_constant_s(0.0) - 0.1).abs() < 1e-12);
+        let fixed = StatePredictor::new(
+            LatencyConfig {
+                disturbance_delays: 0.0,
+                disturbance_time_constant_ms: 1000.0,
+                ..LatencyConfig::default()
+            },
+            MODEL,
+        );
+        assert_eq!(fixed.disturbance_time_constant_s(0.2), 1.0);
     }
 
     /// Without any delay the prediction is the measurement.
