@@ -247,13 +247,7 @@ impl StatePredictor {
                 if self.pulsation.is_some() {
                     self.fit_pulsation(&previous, &mut at_capture, measured_motion, tau_s);
                 } else {
-                    Self::learn_disturbance(
-                        &self.model,
-                        &previous,
-                        &mut at_capture,
-                        measured_motion,
-                        tau_s,
-                    );
+                    self.learn_disturbance(&previous, &mut at_capture, measured_motion, tau_s);
                 }
                 at_capture
             }
@@ -293,7 +287,7 @@ impl StatePredictor {
     /// Moves d̂ towards the force that would have made the model's motion since `previous`
     /// match the measured one (`measured_motion`), with time constant `tau_s`.
     fn learn_disturbance(
-        model: &NominalModel,
+        &self,
         previous: &ModelState,
         at_capture: &mut ModelState,
         measured_motion: Vector2<f64>,
@@ -308,7 +302,8 @@ impl StatePredictor {
             let model_motion = at_capture.state[axis][0] - previous.state[axis][0];
             // A steady force d moves the body at d / c: the missing force behind a velocity
             // mismatch.
-            let missing = (measured_motion[axis] - model_motion) / dt * model.linear_drag_n_s_per_m;
+            let missing =
+                (measured_motion[axis] - model_motion) / dt * self.model.linear_drag_n_s_per_m;
             at_capture.state[axis][2] += alpha * missing;
         }
     }
