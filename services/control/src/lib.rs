@@ -798,6 +798,11 @@ impl ControlLoop {
             reference,
             flow_mps,
             high_disturbance,
+            // Over the command's hold, which lasts about one pose interval.
+            predicted_disturbance_n: self
+                .predictor
+                .lead_disturbance(actuation_ns, dt)
+                .filter(|_| self.config.latency.compensate),
         };
         let (force, terms) = self.controller.update(&input);
         command.mode = ControlMode::Track as u32;

@@ -87,6 +87,7 @@ impl ControllerBench {
             reference: self.reference.sample(t),
             flow_mps: Vector2::new(1e-3, -2e-3),
             high_disturbance: false,
+            predicted_disturbance_n: None,
         }
     }
 

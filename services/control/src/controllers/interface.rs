@@ -20,6 +20,11 @@ pub struct ControlInput {
     pub flow_mps: Vector2<f64>,
     /// In the high-disturbance zone of the flow map.
     pub high_disturbance: bool,
+    /// The latency predictor's estimate of the force the nominal model lacks while this
+    /// command acts: its steady part plus the fitted pulsation's mean over one pose interval
+    /// from the actuation time, N. None without compensation, before the first pose, or when
+    /// the poses are too sparse to resolve the pulsation.
+    pub predicted_disturbance_n: Option<Vector2<f64>>,
 }
 
 /// Internal signals worth logging.
