@@ -10,6 +10,33 @@ const MODEL: NominalModel = NominalModel {
     linear_drag_n_s_per_m: 5.6e-4,
 };
 
+/// Hold the origin: the reference standing there.
+const AT_ORIGIN: ReferenceSample = ReferenceSample {
+    position_m: Vector2::new(0.0, 0.0),
+    velocity_mps: Vector2::new(0.0, 0.0),
+    acceleration_mps2: Vector2::new(0.0, 0.0),
+    finished: false,
+};
+
+/// What the controller is fed holding the origin at (x, v) without delay.
+fn holding_input(
+    dt: f64,
+    (x, v): (Vector2<f64>, Vector2<f64>),
+    flow_mps: Vector2<f64>,
+    predicted_disturbance_n: Option<Vector2<f64>>,
+) -> ControlInput {
+    ControlInput {
+        dt_s: dt,
+        delay_s: 0.0,
+        position_m: x,
+        velocity_mps: v,
+        reference: AT_ORIGIN,
+        flow_mps,
+        high_disturbance: false,
+        predicted_disturbance_n,
+    }
+}
+
 /// Runs `seconds` of holding the origin with `d` injected; returns (d̂, F, position) at the end.
 fn hold_against(
     d: Vector2<f64>,
@@ -27,24 +54,9 @@ fn hold_against(
     // this test is about the observer, so it samples fast enough for the loop to be smooth.
     let dt = 0.001;
     let sub = 20;
-    let reference = ReferenceSample {
-        position_m: Vector2::zeros(),
-        velocity_mps: Vector2::zeros(),
-        acceleration_mps2: Vector2::zeros(),
-        finished: false,
-    };
     let mut last = (Vector2::zeros(), Vector2::zeros());
     for _ in 0..(seconds / dt) as usize {
-        let input = ControlInput {
-            dt_s: dt,
-            delay_s: 0.0,
-            position_m: x,
-            velocity_mps: v,
-            reference,
-            flow_mps: Vector2::zeros(),
-            high_disturbance: false,
-            predicted_disturbance_n: None,
-        };
+        let input = holding_input(dt, (x, v), Vector2::zeros(), None);
         let (f, terms) = ctrl.update(&input);
         last = (terms.disturbance_estimate_n, f);
         if std::env::var_os("DOB_TRACE").is_some() {
@@ -114,25 +126,10 @@ fn hold_scheduled_against(
     let mut ctrl = SmcDob::new(gains, MODEL);
     let (mut x, mut v) = (Vector2::zeros(), Vector2::zeros());
     let (dt, sub) = (0.01, 100);
-    let reference = ReferenceSample {
-        position_m: Vector2::zeros(),
-        velocity_mps: Vector2::zeros(),
-        acceleration_mps2: Vector2::zeros(),
-        finished: false,
-    };
     let (mut sum_sq, mut count, mut forces) = (0.0, 0, Vec::new());
     for k in 0..(seconds / dt) as usize {
         let t = k as f64 * dt;
-        let input = ControlInput {
-            dt_s: dt,
-            delay_s: 0.0,
-            position_m: x,
-            velocity_mps: v,
-            reference,
-            flow_mps: Vector2::new(0.07, 0.0),
-            high_disturbance: false,
-            predicted_disturbance_n: prediction(t),
-        };
+        let input = holding_input(dt, (x, v), Vector2::new(0.07, 0.0), prediction(t));
         let (f, _) = ctrl.update(&input);
         forces.push(f);
         let h = dt / f64::from(sub);
