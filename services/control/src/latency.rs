@@ -146,25 +146,28 @@ impl PulsationFit {
         Vector3::new(1.0, phase.cos(), phase.sin())
     }
 
-    /// The fitted force on each axis at `t_s`.
-    fn force(&self, t_s: f64) -> Vector2<f64> {
-        let b = self.basis(t_s);
-        Vector2::new(self.coefficients[0].dot(&b), self.coefficients[1].dot(&b))
+    /// The fitted force on each axis for basis values `b`.
+    fn force_of(&self, b: &Vector3<f64>) -> Vector2<f64> {
+        Vector2::new(self.coefficients[0].dot(b), self.coefficients[1].dot(b))
     }
 
-    /// The fitted force's mean over `[from_s, from_s + span_s]`.
+    /// The fitted force on each axis at `t_s`.
+    fn force(&self, t_s: f64) -> Vector2<f64> {
+        self.force_of(&self.basis(t_s))
+    }
+
+    /// The fitted force's mean over `[from_s, from_s + span_s]`: the basis functions' means.
     fn mean_force(&self, from_s: f64, span_s: f64) -> Vector2<f64> {
         let w = self.omega_rad_s;
         if span_s * w < 1e-9 {
             return self.force(from_s);
         }
         let (start, end) = (w * from_s, w * (from_s + span_s));
-        let b = Vector3::new(
+        self.force_of(&Vector3::new(
             1.0,
             (end.sin() - start.sin()) / (w * span_s),
             (start.cos() - end.cos()) / (w * span_s),
-        );
-        Vector2::new(self.coefficients[0].dot(&b), self.coefficients[1].dot(&b))
+        ))
     }
 }
 
