@@ -5,6 +5,12 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 /// Vacuum permeability, T·m/A (CODATA 2018; ≈ 4π·1e-7).
 pub const MU0: f64 = 1.256_637_062_12e-6;
 
+/// The aligning torque |m|·B the orientation field gives by default (N·m): the paper's 1 mT on
+/// its 0.86e-3 A·m² magnet (RIG.md). The field for another magnet is this over its |m|, so it
+/// turns as briskly and, the field's pull on the magnet scaling with |m|·B as well, is pulled
+/// toward the coils no harder.
+pub const DEFAULT_ALIGNING_TORQUE_N_M: f64 = 8.6e-7;
+
 /// Translational damping of a slender body, paper Eq. 7: c_t = 2π μ L / ln(L/r), N·s/m.
 ///
 /// For the capsule (L = 7.4 mm, r = 1.4 mm): 5.6e-4 N·s/m at 20 cP, 1.2e-4 N·s/m at 4.3 cP.

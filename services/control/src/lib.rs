@@ -64,8 +64,15 @@ pub struct ControlConfig {
     pub mpc: MpcGains,
     /// Heading of the orientation field (deg from +x; the paper fixes 45° in static tests).
     pub field_heading_deg: f64,
-    /// Magnitude of the orientation field.
-    pub field_magnitude_mt: f64,
+    /// Magnitude of the orientation field (mT). Unset: whatever holds the rig's magnet with
+    /// `aligning_torque_n_m`.
+    pub field_magnitude_mt: Option<f64>,
+    /// With `field_magnitude_mt` unset, the orientation field is this torque over the rig's
+    /// magnet moment (|m|·B, N·m). The field's pull on the magnet scales with |m|·B as well, so
+    /// a capsule with a stronger magnet gets a weaker field, the same turning and the same
+    /// pull. Default: the paper's 1 mT on its 0.86e-3 A·m² magnet
+    /// (`fieldmaps::physics::DEFAULT_ALIGNING_TORQUE_N_M`).
+    pub aligning_torque_n_m: f64,
     /// ω0 of paper Eq. 2 (N/T): weight of the field rows against the force rows.
     pub omega0_n_per_t: f64,
     /// After the last good pose, hold the field this long, then go safe.
@@ -133,7 +140,8 @@ impl Default for ControlConfig {
             smc: SmcGains::default(),
             mpc: MpcGains::default(),
             field_heading_deg: 45.0,
-            field_magnitude_mt: 1.0,
+            field_magnitude_mt: None,
+            aligning_torque_n_m: physics::DEFAULT_ALIGNING_TORQUE_N_M,
             omega0_n_per_t: 0.05,
             hold_timeout_ms: 300.0,
             max_speed_mps: 0.3,
@@ -171,6 +179,14 @@ impl ControlConfig {
         }
     }
 
+    /// The orientation field's magnitude (T) for a magnet of `magnet_moment_am2`.
+    pub fn field_magnitude_t(&self, magnet_moment_am2: f64) -> f64 {
+        match self.field_magnitude_mt {
+            Some(mt) => mt * 1e-3,
+            None => self.aligning_torque_n_m / magnet_moment_am2,
+        }
+    }
+
     /// The MPC gains of this table, with the force bound resolved on `rig` along `path_m`
     /// from the current limits and orientation field when the MPC is the selected controller.
     pub fn mpc_gains(&self, rig: &Rig, path_m: &[Vector2<f64>]) -> MpcGains {
@@ -178,7 +194,8 @@ impl ControlConfig {
             return self.mpc.clone();
         }
         let heading = self.field_heading_deg.to_radians();
-        let field = Vector2::new(heading.cos(), heading.sin()) * (self.field_magnitude_mt * 1e-3);
+        let field = Vector2::new(heading.cos(), heading.sin())
+            * self.field_magnitude_t(rig.robot.magnet_moment_am2);
         let coil_ids = self.coil_ids(rig);
         let site = ForceSite {
             coils: &rig.coil_field,
@@ -248,6 +265,9 @@ pub struct ControlLoop {
     /// Heading of the orientation field commanded last (rad): `field_heading_deg` unless
     /// `field_heading_turn_deg` lets it turn.
     field_heading_rad: f64,
+    /// The orientation field's magnitude (T): the table's, or the aligning torque over the
+    /// rig's magnet.
+    field_magnitude_t: f64,
     /// How long the field must have held its direction before a frame's heading measures it
     /// (ns): the gain estimate's `settle_ms`, and at least three rotation time constants.
     alignment_window_ns: u64,
@@ -297,9 +317,10 @@ impl ControlLoop {
             VelocityObserver::new(config.observer.clone(), moving, config.latency.pulsation_hz)
         });
         let config_heading = config.field_heading_deg.to_radians();
+        let field_magnitude_t = config.field_magnitude_t(robot.magnet_moment_am2);
         let rotation_time_constant_s =
             physics::rotational_drag(viscosity_pa_s, robot.length_m, robot.diameter_m / 2.0)
-                / (robot.magnet_moment_am2 * config.field_magnitude_mt * 1e-3).max(1e-12);
+                / (robot.magnet_moment_am2 * field_magnitude_t).max(1e-12);
         let alignment_window_s =
             (config.gain_estimation.settle_ms * 1e-3).max(3.0 * rotation_time_constant_s);
         let gain_estimator = config
@@ -328,6 +349,7 @@ impl ControlLoop {
             gain_estimator,
             issued: VecDeque::with_capacity(ISSUED_HISTORY_LEN),
             field_heading_rad: config_heading,
+            field_magnitude_t,
             alignment_window_ns: (alignment_window_s.min(10.0) * 1e9) as u64,
         }
     }
@@ -362,7 +384,7 @@ impl ControlLoop {
 
     /// The orientation field at `heading` (rad).
     fn field_at(&self, heading: f64) -> Vector2<f64> {
-        Vector2::new(heading.cos(), heading.sin()) * (self.config.field_magnitude_mt * 1e-3)
+        Vector2::new(heading.cos(), heading.sin()) * self.field_magnitude_t
     }
 
     /// The orientation field commanded now.
@@ -886,7 +908,10 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
         at_least("max_current_slew_a_per_s", rate, 0.0, true)?;
     }
     at_least("velocity_filter_ms", config.velocity_filter_ms, 0.0, false)?;
-    at_least("field_magnitude_mt", config.field_magnitude_mt, 0.0, false)?;
+    if let Some(mt) = config.field_magnitude_mt {
+        at_least("field_magnitude_mt", mt, 0.0, false)?;
+    }
+    at_least("aligning_torque_n_m", config.aligning_torque_n_m, 0.0, true)?;
     at_least("omega0_n_per_t", config.omega0_n_per_t, 0.0, true)?;
     at_least("field_row_weight", config.field_row_weight, 0.0, true)?;
     at_least("replan_clearance_mm", config.replan_clearance_mm, 0.0, true)?;
@@ -1362,6 +1387,20 @@ mod tests {
     }
 
     #[test]
+    fn the_default_field_holds_any_magnet_with_the_papers_torque() {
+        let config = ControlConfig::default();
+        // The paper's 1 mT on its magnet, exactly (its matrices stay bit for bit).
+        assert_eq!(config.field_magnitude_t(8.6e-4), 1e-3);
+        let strong = config.field_magnitude_t(5.61e-3);
+        assert!((strong * 5.61e-3 - 8.6e-7).abs() < 1e-15, "{strong} T");
+        let fixed = ControlConfig {
+            field_magnitude_mt: Some(0.3),
+            ..ControlConfig::default()
+        };
+        assert_eq!(fixed.field_magnitude_t(5.61e-3), 0.3e-3);
+    }
+
+    #[test]
     fn check_config_accepts_good_tables() {
         check_config(&scenario_with("good", "controller = \"pid\"")).unwrap();
         check_config(&scenario_with(
@@ -1430,6 +1469,11 @@ mod tests {
             error.contains("[control.gain_estimation] prior_std"),
             "{error}"
         );
+
+        let error = check_config(&scenario_with("torque", "aligning_torque_n_m = 0.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("[control] aligning_torque_n_m"), "{error}");
 
         let error = check_config(&scenario_with(
             "limits",

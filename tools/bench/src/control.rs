@@ -150,7 +150,8 @@ impl AllocationBench {
         let config = ControlConfig::default();
         let omega0 = config.omega0_n_per_t;
         let h = config.field_heading_deg.to_radians();
-        let b = Vector2::new(h.cos(), h.sin()) * config.field_magnitude_mt * 1e-3;
+        let b =
+            Vector2::new(h.cos(), h.sin()) * config.field_magnitude_t(rig.robot.magnet_moment_am2);
         let cases = (0..n)
             .map(|k| {
                 let p = position(&reference, k * 50);

@@ -12,8 +12,10 @@ pub struct RigCheckArgs {
     /// Rig file to check (e.g. fieldmaps/rigs/paper.toml).
     #[arg(long)]
     pub rig: PathBuf,
-    /// Orientation-field magnitudes (mT) at which to report the guaranteed force (1 mT is
-    /// services/control's default `field_magnitude_mt`); empty (`--field-mt=`) skips it.
+    /// Orientation-field magnitudes (mT) at which to report the guaranteed force, after the
+    /// field services/control holds by default on this rig (the paper's aligning torque, 0.86
+    /// µN·m, over the rig's magnet moment: 1 mT on the paper's rig); empty (`--field-mt=`)
+    /// skips the budget.
     #[arg(long, value_delimiter = ',', default_values_t = [1.0, 5.0, 10.0])]
     pub field_mt: Vec<f64>,
     /// Control's ω0 (N/T): weight of the field rows in the pseudo-inverse allocation
@@ -161,10 +163,21 @@ pub fn run(args: &RigCheckArgs) -> anyhow::Result<()> {
         anyhow::bail!("--spacing-mm must be > 0");
     }
     let mut weakest_route = f64::INFINITY;
-    for &mt in &args.field_mt {
-        if !(mt.is_finite() && mt >= 0.0) {
-            anyhow::bail!("--field-mt: {mt} is not a field magnitude ≥ 0");
-        }
+    if let Some(bad) = args
+        .field_mt
+        .iter()
+        .find(|mt| !(mt.is_finite() && **mt >= 0.0))
+    {
+        anyhow::bail!("--field-mt: {bad} is not a field magnitude ≥ 0");
+    }
+    // Control's default field on this rig first, unless it is one of those asked for.
+    let default_mt =
+        fieldmaps::physics::DEFAULT_ALIGNING_TORQUE_N_M / rig.robot.magnet_moment_am2 * 1e3;
+    let mut fields_mt = args.field_mt.clone();
+    if !fields_mt.is_empty() && !fields_mt.iter().any(|mt| (mt - default_mt).abs() < 1e-9) {
+        fields_mt.insert(0, default_mt);
+    }
+    for &mt in &fields_mt {
         let b = force_budget(&rig, mt * 1e-3, args.omega0, args.spacing_mm * 1e-3);
         let route = match b.route_n {
             Some((s, e)) => {
@@ -179,8 +192,13 @@ pub fn run(args: &RigCheckArgs) -> anyhow::Result<()> {
         } else {
             " [the field alone is out of reach at some canal points]"
         };
+        let shown = if (mt - default_mt).abs() < 1e-9 {
+            format!("{mt:.3} mT, control's default for this magnet,")
+        } else {
+            format!("{mt} mT")
+        };
         println!(
-            "force budget at {mt} mT (ω0 {} N/T, any direction, any field heading): {route}canal minimum {:.3} mN at ({:.1}, {:.1}) mm over {} points ({:.3} mN with each coil's own limits){reach}",
+            "force budget at {shown} (ω0 {} N/T, any direction, any field heading): {route}canal minimum {:.3} mN at ({:.1}, {:.1}) mm over {} points ({:.3} mN with each coil's own limits){reach}",
             args.omega0,
             b.canal_min_n * 1e3,
             b.canal_min_at_m.x * 1e3,

@@ -45,6 +45,8 @@ fn paper_rig_checks_out() {
             "inlet-1",
             "zone",
             "flow conditions: 4",
+            "force budget at 1.000 mT, control's default for this magnet,",
+            "force budget at 5 mT",
             "rig ok",
         ],
     );
@@ -87,6 +89,8 @@ fn vessel8_rig_checks_out_with_its_force_budget() {
             "branch-outlet",
             "flow conditions: 3",
             "force budget at 5 mT",
+            // The paper's aligning torque over vessel8's 5.61e-3 A·m² magnet.
+            "force budget at 0.153 mT, control's default for this magnet,",
             "rig ok",
         ],
     );
