@@ -63,7 +63,7 @@ impl Mode {
 pub enum MatrixKind {
     /// The paper's matrix on the base scenario's rig (the rig's own flow conditions).
     Paper,
-    /// One disturbance at a time around 20 cP, 7 cm/s (`--robustness`).
+    /// One disturbance at a time around one flow condition of the rig (`--robustness`).
     Robustness,
 }
 
@@ -1004,9 +1004,10 @@ impl Campaign {
                 CellSpec::Paper(_) => bail!("a paper-matrix cell in a robustness campaign"),
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
-        let table = robustness::write_tables(&outcomes, &self.out)?;
+        let on_paper_rig = self.manifest.on_paper_rig;
+        let table = robustness::write_tables(&outcomes, on_paper_rig, &self.out)?;
         if report::register_font() {
-            robustness::heat_map(&outcomes, &self.out.join("robustness.png"))?;
+            robustness::heat_map(&outcomes, on_paper_rig, &self.out.join("robustness.png"))?;
         } else {
             eprintln!("no DejaVu font found (apt install fonts-dejavu-core): heat map skipped");
         }
@@ -1037,6 +1038,8 @@ mod tests {
             CellSpec::Robustness(Case {
                 axis: robustness::Axis::CameraLatencyMs,
                 level: 100.0,
+                viscosity_cp: 20.0,
+                flow: FlowSetting::Q180,
                 frame_period_ms: 100.0,
                 controller: "mpc".into(),
                 seed: 3,

@@ -297,7 +297,10 @@ fn run_matrix(args: &MatrixArgs) -> anyhow::Result<ExitCode> {
         "Slurm options (--partition, --time, --no-wait, …) go with --backend slurm"
     );
     let (matrix, cells) = if args.robustness {
-        (MatrixKind::Robustness, robustness_cases(args)?)
+        (
+            MatrixKind::Robustness,
+            robustness_cases(args, &*base.rig()?)?,
+        )
     } else {
         let rig = base.rig()?;
         (
@@ -686,9 +689,9 @@ fn selected_cells(args: &MatrixArgs, rig: &Rig) -> anyhow::Result<Vec<millinav_e
     Ok(cells)
 }
 
-/// The robustness matrix's cases for `--controllers` (default: the scheduled SMC-DOB and the
-/// baselines), `--only` applied to their names.
-fn robustness_cases(args: &MatrixArgs) -> anyhow::Result<Vec<CellSpec>> {
+/// The robustness matrix's cases on `rig` for `--controllers` (default: the scheduled SMC-DOB
+/// and the baselines), `--only` applied to their names.
+fn robustness_cases(args: &MatrixArgs, rig: &Rig) -> anyhow::Result<Vec<CellSpec>> {
     let known = ["pid", "mpc", "smc-dob", "smc", "smc-dob-auto", "smc-auto"];
     let controllers: Vec<String> = if args.controllers.is_empty() {
         ["smc-dob-auto", "pid", "mpc", "smc-dob"]
@@ -703,7 +706,8 @@ fn robustness_cases(args: &MatrixArgs) -> anyhow::Result<Vec<CellSpec>> {
             known.join(", ")
         );
     }
-    let mut cases = robustness::cases(&controllers, args.trials.max(1));
+    let around = robustness::Around::on_rig(rig)?;
+    let mut cases = robustness::cases(&controllers, args.trials.max(1), &around);
     if !args.only.is_empty() {
         cases.retain(|c| args.only.iter().any(|o| c.name().contains(o.as_str())));
     }

@@ -1,12 +1,14 @@
-//! The robustness matrix (issue 21 point 5): one condition of the paper (20 cP, 7 cm/s, the
-//! cell with the paper's tightest SMC-DOB number), each disturbance of the twin varied alone
-//! around the twin's default while the others stay there, for the scheduled SMC-DOB and the
-//! baselines, at the paper's 10 Hz and at 100 Hz. A table and a heat map of completion and
-//! RMSE ratio to the paper's SMC-DOB.
+//! The robustness matrix (issue 21 point 5): one flow condition of the rig (on the paper's,
+//! 20 cP at 7 cm/s, the cell with the paper's tightest SMC-DOB number; on any rig its most
+//! viscous fluid at its lowest flow, which is the same rule), each disturbance of the twin
+//! varied alone around the twin's default while the others stay there, for the scheduled
+//! SMC-DOB and the baselines, at the paper's 10 Hz and at 100 Hz. A table and a heat map of
+//! completion and RMSE ratio to the paper's SMC-DOB (on the paper's rig; RMSE elsewhere).
 
 use std::fmt::Write as _;
 use std::path::Path;
 
+use fieldmaps::rigfile::Rig;
 use millinav_kit::scenario::Scenario;
 use plotters::prelude::*;
 
@@ -31,8 +33,57 @@ pub enum Axis {
     CoilGainError,
     /// Extra camera latency, ms (whole frames; `[plant.camera] latency_frames`).
     CameraLatencyMs,
-    /// Viscosity, cP (the rig's flow maps exist at the paper's two).
+    /// Viscosity, cP: every viscosity the rig has a flow map for at the matrix's flow.
     ViscosityCp,
+}
+
+/// The flow condition the matrix varies the disturbances around, and the viscosities its
+/// viscosity axis visits.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Around {
+    pub viscosity_cp: f64,
+    pub flow: FlowSetting,
+    /// Every viscosity the rig has a map for at `flow`, lowest first.
+    pub viscosities_cp: Vec<f64>,
+}
+
+impl Around {
+    /// The rig's most viscous fluid at its lowest flow among that fluid's conditions (on the
+    /// paper's rig 20 cP at 180 mL/min, 7 cm/s); an error names the rig when it has no flow
+    /// condition.
+    pub fn on_rig(rig: &Rig) -> anyhow::Result<Self> {
+        let cp = |pa_s: f64| (pa_s * 1e4).round() / 10.0;
+        let conditions = &rig.phantom.flow_conditions;
+        let viscosity_cp = conditions
+            .iter()
+            .map(|c| cp(c.viscosity_pa_s))
+            .max_by(f64::total_cmp)
+            .ok_or_else(|| {
+                anyhow::anyhow!(
+                    "{}: phantom.flow: the robustness matrix varies a flow, and the rig has no \
+                     [[phantom.flow]] condition",
+                    rig.path.display()
+                )
+            })?;
+        let flow_ml_min = conditions
+            .iter()
+            .filter(|c| cp(c.viscosity_pa_s) == viscosity_cp)
+            .map(|c| c.flow_ml_min.round() as u32)
+            .min()
+            .expect("the most viscous fluid has a condition");
+        let mut viscosities_cp: Vec<f64> = conditions
+            .iter()
+            .filter(|c| c.flow_ml_min.round() as u32 == flow_ml_min)
+            .map(|c| cp(c.viscosity_pa_s))
+            .collect();
+        viscosities_cp.sort_by(f64::total_cmp);
+        viscosities_cp.dedup();
+        Ok(Self {
+            viscosity_cp,
+            flow: FlowSetting::Flow(flow_ml_min),
+            viscosities_cp,
+        })
+    }
 }
 
 impl Axis {
@@ -58,8 +109,8 @@ impl Axis {
         }
     }
 
-    /// The levels the matrix runs (the twin's default among them).
-    pub fn levels(self) -> &'static [f64] {
+    /// The levels the matrix runs around `around` (the twin's default among them).
+    pub fn levels(self, around: &Around) -> &[f64] {
         match self {
             Axis::PulsationHz => &[1.0, 2.0, 3.0],
             Axis::PulsationAmplitude => &[0.25, 0.5, 0.8],
@@ -67,7 +118,7 @@ impl Axis {
             Axis::Recirculation => &[0.0, 0.25, 0.5],
             Axis::CoilGainError => &[0.0, 0.05, 0.1],
             Axis::CameraLatencyMs => &[0.0, 50.0, 100.0],
-            Axis::ViscosityCp => &[4.3, 20.0],
+            Axis::ViscosityCp => &around.viscosities_cp,
         }
     }
 }
@@ -78,6 +129,9 @@ impl Axis {
 pub struct Case {
     pub axis: Axis,
     pub level: f64,
+    /// The condition's fluid (the level on the viscosity axis) and flow.
+    pub viscosity_cp: f64,
+    pub flow: FlowSetting,
     pub frame_period_ms: f64,
     pub controller: String,
     pub seed: u64,
@@ -97,36 +151,38 @@ impl Case {
 
     /// The matrix cell this case starts from.
     fn cell(&self) -> Cell {
-        let viscosity_cp = if self.axis == Axis::ViscosityCp {
-            self.level
-        } else {
-            20.0
-        };
         Cell {
-            viscosity_cp,
-            flow: FlowSetting::Q180,
+            viscosity_cp: self.viscosity_cp,
+            flow: self.flow,
             controller: self.controller.clone(),
             seed: self.seed,
         }
     }
 }
 
-/// Every case for `controllers` at the two loop rates; latency levels that are not a whole
-/// number of frames at a rate are skipped there.
-pub fn cases(controllers: &[String], trials: u64) -> Vec<Case> {
+/// Every case for `controllers` at the two loop rates around `around`; latency levels that are
+/// not a whole number of frames at a rate are skipped there.
+pub fn cases(controllers: &[String], trials: u64, around: &Around) -> Vec<Case> {
     let mut out = Vec::new();
     for frame_period_ms in [100.0, 10.0] {
         for axis in Axis::ALL {
-            for &level in axis.levels() {
+            for &level in axis.levels(around) {
                 let frames = level / frame_period_ms;
                 if axis == Axis::CameraLatencyMs && (frames - frames.round()).abs() > 1e-9 {
                     continue;
                 }
                 for controller in controllers {
                     for seed in 1..=trials {
+                        let viscosity_cp = if axis == Axis::ViscosityCp {
+                            level
+                        } else {
+                            around.viscosity_cp
+                        };
                         out.push(Case {
                             axis,
                             level,
+                            viscosity_cp,
+                            flow: around.flow,
                             frame_period_ms,
                             controller: controller.clone(),
                             seed,
@@ -233,21 +289,27 @@ fn grouped(outcomes: &[CaseOutcome]) -> Vec<Vec<&CaseOutcome>> {
     groups
 }
 
-/// The paper's SMC-DOB RMSE of a case's condition, mm.
+/// The paper's SMC-DOB RMSE of a case's condition, mm (NaN where the paper has none).
 fn paper_rmse_mm(case: &Case) -> f64 {
     let cell = case.cell();
     paper_smc_dob_rmse_mm(cell.viscosity_cp, cell.flow).unwrap_or(f64::NAN)
 }
 
-/// Summary of a group: completed trials, mean RMSE, its ratio to the paper's SMC-DOB.
-fn summary(group: &[&CaseOutcome]) -> (usize, f64, f64) {
+/// Summary of a group: completed trials, mean RMSE, and its ratio to the paper's SMC-DOB on
+/// the paper's rig (None on another rig: the paper ran only its own).
+fn summary(group: &[&CaseOutcome], on_paper_rig: bool) -> (usize, f64, Option<f64>) {
     let done = group.iter().filter(|o| o.metrics.completed).count();
     let rmse = group.iter().map(|o| o.metrics.rmse_mm).sum::<f64>() / group.len() as f64;
-    (done, rmse, rmse / paper_rmse_mm(&group[0].case))
+    let ratio = on_paper_rig.then(|| rmse / paper_rmse_mm(&group[0].case));
+    (done, rmse, ratio)
 }
 
 /// `robustness.csv` (one row per run) and `robustness.md` (one row per setting).
-pub fn write_tables(outcomes: &[CaseOutcome], out: &Path) -> anyhow::Result<String> {
+pub fn write_tables(
+    outcomes: &[CaseOutcome],
+    on_paper_rig: bool,
+    out: &Path,
+) -> anyhow::Result<String> {
     let mut csv = String::from(
         "axis,level,frame_period_ms,controller,seed,rmse_mm,p95_mm,max_mm,completed,current_step_p95_a\n",
     );
@@ -269,20 +331,34 @@ pub fn write_tables(outcomes: &[CaseOutcome], out: &Path) -> anyhow::Result<Stri
         );
     }
     std::fs::write(out.join("robustness.csv"), csv)?;
-    let mut md = String::from(
-        "One factor at a time around the twin's default (20 cP, 7 cm/s: pulsation 3 Hz at 50 %, \
-         flow noise 0.1, recirculation 0.25, coil gain error 0.03, no extra latency), fast mode. \
-         Ratio = mean RMSE / the paper's SMC-DOB RMSE of that condition (1.00 mm at 20 cP, \
-         1.60 mm at 4.3 cP, 7 cm/s).\n\n\
-         | axis | level | loop | controller | completed | RMSE mm | ratio to paper |\n\
+    let mut md = if on_paper_rig {
+        String::from(
+            "One factor at a time around the twin's default (20 cP, 7 cm/s: pulsation 3 Hz at 50 %, \
+             flow noise 0.1, recirculation 0.25, coil gain error 0.03, no extra latency), fast mode. \
+             Ratio = mean RMSE / the paper's SMC-DOB RMSE of that condition (1.00 mm at 20 cP, \
+             1.60 mm at 4.3 cP, 7 cm/s).\n\n",
+        )
+    } else {
+        let around = outcomes.iter().find(|o| o.case.axis != Axis::ViscosityCp);
+        let condition = around.map_or_else(String::new, |o| {
+            format!(" at {} cP, {}", o.case.viscosity_cp, o.case.flow.label())
+        });
+        format!(
+            "One factor at a time around the base scenario's twin{condition}, fast mode. The \
+             paper ran only its own rig, so there is no ratio to it here.\n\n"
+        )
+    };
+    md.push_str(
+        "| axis | level | loop | controller | completed | RMSE mm | ratio to paper |\n\
          |---|---|---|---|---|---|---|\n",
     );
     for group in grouped(outcomes) {
         let c = &group[0].case;
-        let (done, rmse, ratio) = summary(&group);
+        let (done, rmse, ratio) = summary(&group, on_paper_rig);
+        let ratio = ratio.map_or_else(|| "–".to_string(), |r| format!("{r:.2}"));
         let _ = writeln!(
             md,
-            "| {} | {} | {} Hz | {} | {done}/{} | {rmse:.2} | {ratio:.2} |",
+            "| {} | {} | {} Hz | {} | {done}/{} | {rmse:.2} | {ratio} |",
             c.axis.name(),
             c.level,
             1000.0 / c.frame_period_ms,
@@ -295,9 +371,10 @@ pub fn write_tables(outcomes: &[CaseOutcome], out: &Path) -> anyhow::Result<Stri
 }
 
 /// `robustness.png`: rows = axis and level, columns = controller at each loop rate; the colour
-/// is the RMSE ratio to the paper (green ≤ 1, red ≥ 10, log scale), grey-hatched when a trial
-/// failed to complete; the text is the ratio and the completed trials.
-pub fn heat_map(outcomes: &[CaseOutcome], path: &Path) -> anyhow::Result<()> {
+/// is the RMSE ratio to the paper on the paper's rig, the RMSE in mm on another (green ≤ 1,
+/// red ≥ 10, log scale), with a red border when a trial failed to complete; the text is that
+/// number and the completed trials.
+pub fn heat_map(outcomes: &[CaseOutcome], on_paper_rig: bool, path: &Path) -> anyhow::Result<()> {
     let groups = grouped(outcomes);
     let mut rows: Vec<(Axis, f64)> = groups
         .iter()
@@ -324,11 +401,12 @@ pub fn heat_map(outcomes: &[CaseOutcome], path: &Path) -> anyhow::Result<()> {
     let root = BitMapBackend::new(path, size).into_drawing_area();
     root.fill(&WHITE)?;
     let font = ("sans-serif", 14).into_font();
-    root.draw(&Text::new(
-        "RMSE / paper SMC-DOB (completed/trials); red border: not all completed",
-        (10, 10),
-        ("sans-serif", 16).into_font(),
-    ))?;
+    let title = if on_paper_rig {
+        "RMSE / paper SMC-DOB (completed/trials); red border: not all completed"
+    } else {
+        "RMSE mm (completed/trials); red border: not all completed"
+    };
+    root.draw(&Text::new(title, (10, 10), ("sans-serif", 16).into_font()))?;
     for (j, (neg_period, controller)) in columns.iter().enumerate() {
         let x = (left + cell_w * j as u32) as i32;
         let label = format!("{controller} {:.0} Hz", 1000.0 / (-*neg_period) as f64);
@@ -351,7 +429,8 @@ pub fn heat_map(outcomes: &[CaseOutcome], path: &Path) -> anyhow::Result<()> {
             }) else {
                 continue;
             };
-            let (done, _, ratio) = summary(group);
+            let (done, rmse, ratio) = summary(group, on_paper_rig);
+            let ratio = ratio.unwrap_or(rmse);
             let x = (left + cell_w * j as u32) as i32;
             // log10(ratio) from 0 (green) to 1 (red).
             let t = ratio.max(1e-3).log10().clamp(0.0, 1.0);
@@ -385,11 +464,44 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_matrix_varies_around_each_rigs_most_viscous_fluid_at_its_lowest_flow() {
+        let root = fieldmaps::data_root();
+        let paper = Around::on_rig(&Rig::load_paper().unwrap()).unwrap();
+        assert_eq!(
+            paper,
+            Around {
+                viscosity_cp: 20.0,
+                flow: FlowSetting::Q180,
+                viscosities_cp: vec![4.3, 20.0],
+            }
+        );
+        // vessel8: 6 cP at 200 mL/min, 4.3 cP at 120 and 200 mL/min.
+        let vessel8 = Rig::load(&root.join("fieldmaps/rigs/vessel8.toml")).unwrap();
+        let around = Around::on_rig(&vessel8).unwrap();
+        assert_eq!(
+            around,
+            Around {
+                viscosity_cp: 6.0,
+                flow: FlowSetting::Flow(200),
+                viscosities_cp: vec![4.3, 6.0],
+            }
+        );
+        let base = Scenario::load(&root.join("scenarios/vessel8.toml")).unwrap();
+        for case in cases(&["pid".to_string()], 1, &around) {
+            let text = case_scenario(&base, &case).unwrap();
+            let scenario = Scenario::parse(&text, &root.join("scenarios/case.toml")).unwrap();
+            assert_eq!(scenario.fluid.viscosity_cp, case.viscosity_cp);
+            assert!(text.contains("q200_mu"), "{}: {text}", case.name());
+        }
+    }
+
+    #[test]
     fn every_axis_reaches_the_scenario() {
         let root = fieldmaps::data_root();
         let base = Scenario::load(&root.join("scenarios/paper.toml")).unwrap();
         let controllers = vec!["smc-dob-auto".to_string()];
-        let all = cases(&controllers, 1);
+        let around = Around::on_rig(&Rig::load_paper().unwrap()).unwrap();
+        let all = cases(&controllers, 1, &around);
         // 50 ms is not a whole number of 100 ms frames: skipped at 10 Hz only.
         assert!(all
             .iter()

@@ -27,7 +27,9 @@ fn the_robustness_matrix_reports_every_case() {
         "{}",
         String::from_utf8_lossy(&output.stderr)
     );
-    let expected = millinav_experiments::robustness::cases(&["smc-dob-auto".into()], 1);
+    let rig = fieldmaps::rigfile::Rig::load_paper().expect("paper rig");
+    let around = millinav_experiments::robustness::Around::on_rig(&rig).expect("a flow condition");
+    let expected = millinav_experiments::robustness::cases(&["smc-dob-auto".into()], 1, &around);
     let csv = std::fs::read_to_string(out.join("robustness.csv")).expect("robustness.csv");
     assert_eq!(csv.lines().count(), expected.len() + 1, "{csv}");
     let table = std::fs::read_to_string(out.join("robustness.md")).expect("robustness.md");
