@@ -148,10 +148,12 @@ struct MatrixArgs {
     /// figures). A cell whose recorded scenario differs is an error; wall_s then is read time.
     #[arg(long)]
     reuse_runs: bool,
-    /// Run the robustness matrix instead of the paper's: 20 cP at 7 cm/s with one disturbance
-    /// varied at a time (pulsation rate and amplitude, flow noise, recirculation, per-coil gain
-    /// error, camera latency, viscosity) at 10 and 100 Hz, for the scheduled SMC-DOB and the
-    /// baselines (or --controllers); writes robustness.csv, robustness.md, robustness.png.
+    /// Run the robustness matrix instead of the paper's: the rig's most viscous fluid at its
+    /// lowest flow (20 cP at 7 cm/s on the paper's rig) with one disturbance varied at a time
+    /// (pulsation rate and amplitude, flow noise, recirculation, per-coil gain error, camera
+    /// latency, the rig's viscosities at that flow) at 10 and 100 Hz, for the scheduled SMC-DOB
+    /// and the baselines (or --controllers); writes robustness.csv, robustness.md,
+    /// robustness.png.
     #[arg(long)]
     robustness: bool,
     /// Worker threads (local backend, fast mode; process mode runs one cell at a time).
