@@ -73,6 +73,10 @@ pub struct ControlConfig {
     /// pull. Default: the paper's 1 mT on its 0.86e-3 A·m² magnet
     /// (`fieldmaps::physics::DEFAULT_ALIGNING_TORQUE_N_M`).
     pub aligning_torque_n_m: f64,
+    /// The coils' current time constant (ms): L/R, or the driver's current loop, measured by
+    /// the lab (a current step on the board's Status). The scheduled SMC-DOB counts it
+    /// (`SmcGains::coil_time_constant_s`); 0 (default): coils that follow within a frame.
+    pub coil_time_constant_ms: f64,
     /// ω0 of paper Eq. 2 (N/T): weight of the field rows against the force rows.
     pub omega0_n_per_t: f64,
     /// After the last good pose, hold the field this long, then go safe.
@@ -142,6 +146,7 @@ impl Default for ControlConfig {
             field_heading_deg: 45.0,
             field_magnitude_mt: None,
             aligning_torque_n_m: physics::DEFAULT_ALIGNING_TORQUE_N_M,
+            coil_time_constant_ms: 0.0,
             omega0_n_per_t: 0.05,
             hold_timeout_ms: 300.0,
             max_speed_mps: 0.3,
@@ -304,9 +309,11 @@ impl ControlLoop {
             .map(|&id| rig.coils.get(id).and_then(|c| c.saturation.clone()))
             .collect();
         let effective_ratings = ratings.effective(&saturation);
-        let controller = config
-            .controller
-            .build(&config.pid, &config.smc, &mpc, model);
+        let smc = SmcGains {
+            coil_time_constant_s: config.coil_time_constant_ms * 1e-3,
+            ..config.smc.clone()
+        };
+        let controller = config.controller.build(&config.pid, &smc, &mpc, model);
         // The predictor moves the whole body: the fluid it drags along counts (added mass).
         let moving = NominalModel {
             mass_kg: robot.mass_kg + robot.added_mass_kg,
@@ -912,6 +919,12 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
         at_least("field_magnitude_mt", mt, 0.0, false)?;
     }
     at_least("aligning_torque_n_m", config.aligning_torque_n_m, 0.0, true)?;
+    at_least(
+        "coil_time_constant_ms",
+        config.coil_time_constant_ms,
+        0.0,
+        false,
+    )?;
     at_least("omega0_n_per_t", config.omega0_n_per_t, 0.0, true)?;
     at_least("field_row_weight", config.field_row_weight, 0.0, true)?;
     at_least("replan_clearance_mm", config.replan_clearance_mm, 0.0, true)?;

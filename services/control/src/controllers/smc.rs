@@ -57,6 +57,13 @@ pub struct SmcGains {
     /// same prediction passed through the DOB's filter, so a steady prediction adds nothing and
     /// the DOB still corrects whatever the prediction gets wrong.
     pub predicted_disturbance_lead: bool,
+    /// The coils' current time constant (s): `[control] coil_time_constant_ms`, not a gain.
+    /// With `auto_schedule` and the DOB it counts as loop lag in the switching slope's
+    /// sampled-loop bound (within a fraction of m̂/(Δt + τ)), and the DOB takes the force the
+    /// coils made through that lag over each sample instead of the force commanded. 0: coils
+    /// that follow within the sample.
+    #[serde(skip)]
+    pub coil_time_constant_s: f64,
 }
 
 impl Default for SmcGains {
@@ -82,6 +89,7 @@ impl Default for SmcGains {
             sampled_bandwidth_rad: 0.5,
             delay_eta_factor: 2.0,
             predicted_disturbance_lead: true,
+            coil_time_constant_s: 0.0,
         }
     }
 }
@@ -96,6 +104,9 @@ pub struct SmcDob {
     q: Vector2<f64>,
     previous_prediction: Vector2<f64>,
     initialized: bool,
+    /// The force the coils make at the end of the last sample, through their lag.
+    coil_force: Vector2<f64>,
+    last_dt_s: f64,
 }
 
 impl SmcDob {
@@ -109,6 +120,8 @@ impl SmcDob {
             q: Vector2::zeros(),
             previous_prediction: Vector2::zeros(),
             initialized: false,
+            coil_force: Vector2::zeros(),
+            last_dt_s: 0.01,
         }
     }
 
@@ -125,7 +138,13 @@ impl SmcDob {
         let phi_m = lerp(g.phi_m, g.flow_phi_m) * (1.0 + 0.5 * zone);
         // Sample time as measured, bounded so one odd gap cannot make φ absurd.
         let dt = input.dt_s.clamp(1e-3, 0.2);
-        let sampled_limit = g.sampled_gain_fraction.max(1e-3) * self.model.mass_kg / dt;
+        // The coils' lag delays every command's effect like the sample time does.
+        let lag = if g.use_dob {
+            g.coil_time_constant_s.max(0.0)
+        } else {
+            0.0
+        };
+        let sampled_limit = g.sampled_gain_fraction.max(1e-3) * self.model.mass_kg / (dt + lag);
         // Slow u_eq's error dynamics (same damping ratio) when the sample time cannot carry them.
         let omega_n = (g.k2 / g.k3).sqrt();
         // Drag damps the capsule within a sample as well (c·Δt/m̂), so it earns more bandwidth.
@@ -219,6 +238,7 @@ impl Controller for SmcDob {
         let u_sw = s.map(|v| g.k4_n * (v / g.phi_m).tanh());
         let force = -d_hat + u_eq + u_sw;
         self.previous_force = force;
+        self.last_dt_s = input.dt_s.clamp(1e-4, 0.5);
         self.previous_prediction = prediction;
         (
             force,
@@ -232,7 +252,18 @@ impl Controller for SmcDob {
     }
     fn applied(&mut self, achieved_n: Vector2<f64>) {
         if self.gains.auto_schedule {
-            self.previous_force = achieved_n;
+            let tau = self.gains.coil_time_constant_s;
+            if self.gains.use_dob && tau > 0.0 {
+                // A first-order lag from where the coils were toward the new command: its
+                // mean over the sample (the DOB's input) and where it ends.
+                let dt = self.last_dt_s;
+                let a = (-dt / tau).exp();
+                let start = self.coil_force - achieved_n;
+                self.previous_force = achieved_n + start * (tau / dt * (1.0 - a));
+                self.coil_force = achieved_n + start * a;
+            } else {
+                self.previous_force = achieved_n;
+            }
         }
     }
     fn reset(&mut self) {
@@ -242,6 +273,7 @@ impl Controller for SmcDob {
         self.previous_force = Vector2::zeros();
         self.q = Vector2::zeros();
         self.previous_prediction = Vector2::zeros();
+        self.coil_force = Vector2::zeros();
     }
 }
 
