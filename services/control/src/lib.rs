@@ -1488,6 +1488,11 @@ mod tests {
             .to_string();
         assert!(error.contains("[control] aligning_torque_n_m"), "{error}");
 
+        let error = check_config(&scenario_with("coils", "coil_time_constant_ms = -5.0"))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("[control] coil_time_constant_ms"), "{error}");
+
         let error = check_config(&scenario_with(
             "limits",
             "[control.limits]\nmax_current_a = 0.0",
