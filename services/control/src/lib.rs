@@ -1425,80 +1425,58 @@ mod tests {
 
     #[test]
     fn check_config_rejects_typos_and_bad_values() {
-        let error = check_config(&scenario_with("typo", "controler = \"pid\""))
-            .unwrap_err()
-            .to_string();
+        // The message a table is refused with.
+        let refused = |name: &str, table: &str| {
+            check_config(&scenario_with(name, table))
+                .unwrap_err()
+                .to_string()
+        };
+        let error = refused("typo", "controler = \"pid\"");
         assert!(
             error.contains("[control]") && error.contains("controler"),
             "{error}"
         );
 
-        let error = check_config(&scenario_with("kind", "controller = \"magic\""))
-            .unwrap_err()
-            .to_string();
+        let error = refused("kind", "controller = \"magic\"");
         assert!(error.contains("magic"), "{error}");
 
-        let error = check_config(&scenario_with("nested", "[control.pid]\nkpp = 1.0"))
-            .unwrap_err()
-            .to_string();
+        let error = refused("nested", "[control.pid]\nkpp = 1.0");
         assert!(error.contains("kpp"), "{error}");
 
-        let error = check_config(&scenario_with("speed", "max_speed_mps = -1.0"))
-            .unwrap_err()
-            .to_string();
+        let error = refused("speed", "max_speed_mps = -1.0");
         assert!(error.contains("[control] max_speed_mps"), "{error}");
 
-        let error = check_config(&scenario_with("replan", "replan_clearance_mm = 0.0"))
-            .unwrap_err()
-            .to_string();
+        let error = refused("replan", "replan_clearance_mm = 0.0");
         assert!(error.contains("[control] replan_clearance_mm"), "{error}");
 
-        let error = check_config(&scenario_with("slew", "max_current_slew_a_per_s = 0.0"))
-            .unwrap_err()
-            .to_string();
+        let error = refused("slew", "max_current_slew_a_per_s = 0.0");
         assert!(
             error.contains("[control] max_current_slew_a_per_s"),
             "{error}"
         );
 
-        let error = check_config(&scenario_with(
-            "latency",
-            "[control.latency]\nmax_pose_age_ms = -5.0",
-        ))
-        .unwrap_err()
-        .to_string();
+        let error = refused("latency", "[control.latency]\nmax_pose_age_ms = -5.0");
         assert!(
             error.contains("[control.latency] max_pose_age_ms"),
             "{error}"
         );
 
-        let error = check_config(&scenario_with(
+        let error = refused(
             "gains",
             "[control.gain_estimation]\nenabled = true\nprior_std = -0.1",
-        ))
-        .unwrap_err()
-        .to_string();
+        );
         assert!(
             error.contains("[control.gain_estimation] prior_std"),
             "{error}"
         );
 
-        let error = check_config(&scenario_with("torque", "aligning_torque_n_m = 0.0"))
-            .unwrap_err()
-            .to_string();
+        let error = refused("torque", "aligning_torque_n_m = 0.0");
         assert!(error.contains("[control] aligning_torque_n_m"), "{error}");
 
-        let error = check_config(&scenario_with("coils", "coil_time_constant_ms = -5.0"))
-            .unwrap_err()
-            .to_string();
+        let error = refused("coils", "coil_time_constant_ms = -5.0");
         assert!(error.contains("[control] coil_time_constant_ms"), "{error}");
 
-        let error = check_config(&scenario_with(
-            "limits",
-            "[control.limits]\nmax_current_a = 0.0",
-        ))
-        .unwrap_err()
-        .to_string();
+        let error = refused("limits", "[control.limits]\nmax_current_a = 0.0");
         assert!(
             error.contains("[control] limits") && error.contains("max_current_a"),
             "{error}"
