@@ -135,6 +135,9 @@ const FIELD_HEADING_STEP_DEG: f64 = 15.0;
 const FORCE_MADE_FRACTION: f64 = 0.02;
 /// A turn toward more force must miss the asked force by this fraction less than staying.
 const TURN_HYSTERESIS_FRACTION: f64 = 0.05;
+/// A slew-bounded allocation this far short of the asked force (fraction of it) is allocated
+/// again without the bound, for the force the coils could make at their ratings.
+const SLEW_SHORTFALL_FRACTION: f64 = 1e-3;
 
 impl Default for ControlConfig {
     fn default() -> Self {
@@ -844,14 +847,29 @@ impl ControlLoop {
             _ => None,
         };
         let slew = slew.as_ref().map(|(previous, step)| (previous, *step));
+        let field_heading_before = self.field_heading_rad;
         let (currents, achieved) =
             self.allocate_turning(&position_m, pose.heading_rad, &force, slew);
+        // What the coils could make at their ratings, the slew bound aside: a controller that
+        // keeps the coil limits out of its disturbance estimate must still see the bound's
+        // shortfall, which passes within a few frames, or the estimate never makes up the
+        // mean force the bound withholds and the robot sits off its path.
+        let at_ratings = match slew {
+            Some(_) if (force - achieved).norm() > force.norm() * SLEW_SHORTFALL_FRACTION => {
+                let magnet_heading =
+                    self.field_heading_rad + wrap_angle(pose.heading_rad - field_heading_before);
+                let field_heading = self.field_heading_rad;
+                self.allocate_with_field(&position_m, magnet_heading, field_heading, &force, None)
+                    .1
+            }
+            _ => achieved,
+        };
         let field = self.desired_field();
         command.field_des_t = [field.x, field.y];
         command.currents_a = currents;
         self.last_tracked = Some((actuation_ns, currents));
         self.record_issued(actuation_ns, currents);
-        self.controller.applied(achieved);
+        self.controller.applied(achieved, at_ratings);
         self.predictor.commanded(actuation_ns, achieved, flow_mps);
         if let Some(observer) = &mut self.observer {
             observer.applied(achieved, flow_mps);

@@ -219,7 +219,7 @@ fn hold_with_lagging_coils(coil_tau_s: f64, told_tau_s: f64) -> f64 {
         last_seen = seen;
         let input = holding_input(dt, (seen, velocity), Vector2::zeros(), None);
         let (f, _) = ctrl.update(&input);
-        ctrl.applied(f);
+        ctrl.applied(f, f);
         let h = dt / f64::from(sub);
         for _ in 0..sub {
             coil_force += (f - coil_force) * (1.0 - (-h / coil_tau_s).exp());
@@ -252,4 +252,89 @@ fn told_the_coils_time_constant_the_scheduled_dob_holds_through_their_lag() {
     );
     assert!(unknown > 10.0 * told, "{unknown} m vs {told} m");
     assert!(told < 3.0 * instant, "{told} m vs {instant} m");
+}
+
+/// Holds the origin at 100 Hz in still 20 cP fluid with the scheduled SMC-DOB against a 3 Hz
+/// sawtooth push of `amplitude_n` (a sharp rise and a slow fall, as a pump's stroke), through
+/// coils whose force may change by at most `max_step_n` per frame (a current slew bound). The
+/// controller is told the force made and, as the loop tells it, the force the coils could make
+/// at their ratings: the asked force when `tell_shortfall`, else the force made. Returns the
+/// mean position along the push after the first two seconds (m) and the fraction of frames the
+/// bound held back.
+fn hold_through_a_slew_bound(
+    amplitude_n: f64,
+    max_step_n: f64,
+    tell_shortfall: bool,
+) -> (f64, f64) {
+    let model = NominalModel {
+        mass_kg: 5.0e-5,
+        linear_drag_n_s_per_m: 5.6e-4,
+    };
+    let gains = SmcGains {
+        auto_schedule: true,
+        ..SmcGains::default()
+    };
+    let mut ctrl = SmcDob::new(gains, model);
+    let (mut x, mut v) = (Vector2::zeros(), Vector2::zeros());
+    let mut made = Vector2::zeros();
+    let (dt, sub) = (0.01, 100);
+    let push = |t: f64| Vector2::new(amplitude_n * (1.0 - (3.0 * t).fract()), 0.0);
+    let (mut last_x, mut velocity) = (Vector2::zeros(), Vector2::zeros());
+    let smoothing = 1.0 - (-dt / 0.03f64).exp();
+    let (mut sum, mut held, mut count) = (0.0, 0, 0);
+    for k in 0..(8.0 / dt) as usize {
+        let t = k as f64 * dt;
+        if k > 0 {
+            velocity += ((x - last_x) / dt - velocity) * smoothing;
+        }
+        last_x = x;
+        let (asked, _) = ctrl.update(&holding_input(dt, (x, velocity), Vector2::zeros(), None));
+        let step = asked - made;
+        let bound = step.norm() > max_step_n;
+        made += if bound {
+            step * (max_step_n / step.norm())
+        } else {
+            step
+        };
+        ctrl.applied(made, if tell_shortfall { asked } else { made });
+        let h = dt / f64::from(sub);
+        for j in 0..sub {
+            let d = push(t + f64::from(j) * h);
+            let a = (made + d - v * model.linear_drag_n_s_per_m) / model.mass_kg;
+            x += v * h + a * (0.5 * h * h);
+            v += a * h;
+        }
+        if t >= 2.0 {
+            sum += x.x;
+            held += usize::from(bound);
+            count += 1;
+        }
+    }
+    (sum / count as f64, held as f64 / count as f64)
+}
+
+/// Coils held back by a slew bound on each stroke's rise make less force than the loop asks.
+/// Kept out of the observer's input, as the coil limits are, that shortfall leaves the robot
+/// off its place (5–36x further here, with the bound holding back 9–78 % of the frames);
+/// counted, averaged over about a stroke, d̂ makes up what the bound withholds. A bound that
+/// never binds changes nothing.
+#[test]
+fn the_dob_makes_up_what_a_slew_bound_withholds() {
+    for (amplitude_n, max_step_n) in [(5e-5, 1e-5), (5e-5, 1.5e-5), (1e-4, 1.5e-5), (1e-4, 2e-5)] {
+        let (hidden, held) = hold_through_a_slew_bound(amplitude_n, max_step_n, false);
+        let (told, _) = hold_through_a_slew_bound(amplitude_n, max_step_n, true);
+        eprintln!(
+            "push {amplitude_n:e} N, step {max_step_n:e} N ({:.0} % held): mean offset {:.4} mm \
+             with the shortfall hidden, {:.4} mm told",
+            held * 100.0,
+            hidden * 1e3,
+            told * 1e3
+        );
+        assert!(held > 0.05, "the bound must bind: {held}");
+        assert!(told.abs() < 0.05e-3, "{told} m");
+        assert!(hidden.abs() > 5.0 * told.abs(), "{hidden} m vs {told} m");
+    }
+    let never_binds = |tell| hold_through_a_slew_bound(5e-5, 3e-5, tell);
+    assert_eq!(never_binds(false), never_binds(true));
+    assert_eq!(never_binds(false).1, 0.0);
 }

@@ -42,9 +42,11 @@ pub trait Controller: Send {
     fn id(&self) -> u32;
     /// Desired planar force (N) for this step.
     fn update(&mut self, input: &ControlInput) -> (Vector2<f64>, ControlTerms);
-    /// The force the allocation could make for the last `update` (less than asked when the
-    /// coils saturate). Controllers that model their own input take it from here.
-    fn applied(&mut self, _achieved_n: Vector2<f64>) {}
+    /// The force the allocation made for the last `update` (less than asked when the coils
+    /// saturate or a slew bound holds them back) and the force the coils could make at their
+    /// ratings, the slew bound aside (equal to it without a bound). Controllers that model their
+    /// own input take it from here.
+    fn applied(&mut self, _achieved_n: Vector2<f64>, _at_ratings_n: Vector2<f64>) {}
     /// Forget integrators and filters (after a hold or a restart of the loop).
     fn reset(&mut self);
 }

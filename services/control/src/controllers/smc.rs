@@ -28,9 +28,11 @@ pub struct SmcGains {
     /// Schedule K4, η and φ automatically from the flow map's local speed (static gains in
     /// still fluid, the paper's flow gains at `schedule_ref_speed_mps`) and widen η and φ in
     /// the high-disturbance zone as the paper did by hand (η x1.75, φ x1.5). The observer then
-    /// also takes the force the allocation achieved as the loop's input instead of the force
-    /// asked for: at the coil limits the difference is not a disturbance, and counting it as one
-    /// winds d̂ up until the robot, once free, is thrown across the canal.
+    /// also takes the force the coils could make at their ratings as the loop's input instead
+    /// of the force asked for: at the coil limits the difference is not a disturbance, and
+    /// counting it as one winds d̂ up until the robot, once free, is thrown across the canal.
+    /// A slew bound's shortfall is counted: it passes within frames, and d̂ makes up the mean
+    /// force the bound withholds (without it the robot sat 1.3 mm off the path at 20 cP 10 cm/s).
     pub auto_schedule: bool,
     pub flow_k4_n: f64,
     pub flow_eta_s: f64,
@@ -94,6 +96,13 @@ impl Default for SmcGains {
     }
 }
 
+/// Over how long the scheduled SMC-DOB averages a slew bound's shortfall before its observer
+/// counts it (s). The shortfall swings within each pump stroke (the bound holds the coils back
+/// on the stroke's rise and lets them catch up after); counted frame by frame, those swings feed
+/// back through d̂ into the very command the bound holds back, and under a tight bound the loop
+/// rings without limit (`tests/dob.rs`). About one stroke at the paper's 3 Hz, several η.
+const SLEW_SHORTFALL_MEAN_S: f64 = 0.3;
+
 pub struct SmcDob {
     gains: SmcGains,
     model: NominalModel,
@@ -107,6 +116,9 @@ pub struct SmcDob {
     /// The force the coils make at the end of the last sample, through their lag.
     coil_force: Vector2<f64>,
     last_dt_s: f64,
+    /// The slew bound's shortfall (force at the ratings − force made), averaged over
+    /// `SLEW_SHORTFALL_MEAN_S`.
+    slew_shortfall: Vector2<f64>,
 }
 
 impl SmcDob {
@@ -122,6 +134,7 @@ impl SmcDob {
             initialized: false,
             coil_force: Vector2::zeros(),
             last_dt_s: 0.01,
+            slew_shortfall: Vector2::zeros(),
         }
     }
 
@@ -250,7 +263,12 @@ impl Controller for SmcDob {
             },
         )
     }
-    fn applied(&mut self, achieved_n: Vector2<f64>) {
+    fn applied(&mut self, achieved_n: Vector2<f64>, at_ratings_n: Vector2<f64>) {
+        // The coil limits stay out of d̂ (anti-windup); the slew bound's mean shortfall does not.
+        let dt = self.last_dt_s;
+        let k = 1.0 - (-dt / SLEW_SHORTFALL_MEAN_S).exp();
+        self.slew_shortfall += (at_ratings_n - achieved_n - self.slew_shortfall) * k;
+        let achieved_n = achieved_n + self.slew_shortfall;
         if self.gains.auto_schedule {
             let tau = self.gains.coil_time_constant_s;
             if self.gains.use_dob && tau > 0.0 {
@@ -274,6 +292,7 @@ impl Controller for SmcDob {
         self.q = Vector2::zeros();
         self.previous_prediction = Vector2::zeros();
         self.coil_force = Vector2::zeros();
+        self.slew_shortfall = Vector2::zeros();
     }
 }
 
