@@ -11,7 +11,8 @@
 //! "Safe" means the board drove every coil to zero: a zero frame at the emulated Teensy or the
 //! board's own watchdog zeroing (`teensy_events.csv`), never merely some event after the fault.
 //! Time to safe runs from where the deadline starts to that zero: the last frame the board
-//! received before the fault, or for a firmware stall the stall itself (the hardware watchdog's
+//! received (a command already on its way when the fault struck may land after it, at most one
+//! command deadline after), or for a firmware stall the stall itself (the hardware watchdog's
 //! last feed, logged as `hang`); it must stay within the deadline plus `SCHEDULING_TOLERANCE_MS`.
 //!
 //! Table: `cargo test --release --workspace --test fault_matrix -- --nocapture`
@@ -216,24 +217,6 @@ fn inject(run: &RunSet, fault: Fault) -> FaultOutcome {
         "no tracking after {service} came back from {label}"
     );
     let teensy = run.teensy_events().expect("teensy");
-    // The deadline (coilbus's command deadline, the board's watchdog) runs from the last frame
-    // the board received.
-    let last_frame_before = teensy
-        .iter()
-        .rfind(|e| e.is_frame() && e.monotonic_ns <= injected)
-        .map(|e| e.monotonic_ns)
-        .unwrap_or_else(|| panic!("no frame reached the board before {label} of {service}"));
-    // A stalled firmware stops feeding the hardware watchdog when it stalls, which is when the
-    // board logs `hang`; the plant hands the signal to the board between its own steps, so that
-    // moment can trail the last frame by a lockstep wait that is no part of the board's bound.
-    let deadline_start = match fault {
-        Fault::LinkHang => teensy
-            .iter()
-            .find(|e| e.monotonic_ns > injected && e.kind == "hang")
-            .map(|e| e.monotonic_ns)
-            .unwrap_or_else(|| panic!("the board never logged its stall after {label}")),
-        _ => last_frame_before,
-    };
     // Safe: the board itself drove zero (a zero frame, or its watchdog), not any event after
     // the fault. A coilbus that comes back and resumes commanding without the coils ever
     // reaching zero fails here.
@@ -244,6 +227,31 @@ fn inject(run: &RunSet, fault: Fault) -> FaultOutcome {
         .unwrap_or_else(|| {
             panic!("the board never drove the coils to zero after {label} of {service}")
         });
+    // The deadline (coilbus's command deadline, the board's watchdog) runs from the last frame
+    // the board received. A command already on its way when the fault struck (made from a pose
+    // captured before it) can land after it and restart that deadline; nothing may land later
+    // than one command deadline after the fault.
+    let last_frame_ns = teensy
+        .iter()
+        .rfind(|e| e.is_frame() && e.monotonic_ns < safe_ns)
+        .map(|e| e.monotonic_ns)
+        .unwrap_or_else(|| panic!("no frame reached the board before {label} of {service}"));
+    let in_flight_ms = ms(injected, last_frame_ns);
+    assert!(
+        in_flight_ms <= deadlines::COMMAND.as_secs_f64() * 1e3,
+        "{label} of {service}: commands still reached the board {in_flight_ms:.0} ms after it"
+    );
+    // A stalled firmware stops feeding the hardware watchdog when it stalls, which is when the
+    // board logs `hang`; the plant hands the signal to the board between its own steps, so that
+    // moment can trail the last frame by a lockstep wait that is no part of the board's bound.
+    let deadline_start = match fault {
+        Fault::LinkHang => teensy
+            .iter()
+            .find(|e| e.monotonic_ns > injected && e.kind == "hang")
+            .map(|e| e.monotonic_ns)
+            .unwrap_or_else(|| panic!("the board never logged its stall after {label}")),
+        _ => last_frame_ns,
+    };
     let resumed = teensy
         .iter()
         .find(|e| e.monotonic_ns > restart_ns && e.kind == "command" && e.max_abs_current_a > 0.0)
