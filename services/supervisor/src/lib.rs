@@ -825,6 +825,18 @@ fn finish(
         tracing::error!("supervisor loop failed: {e:#}");
     }
     supervisor.shutdown();
+    // A child killed because it did not stop in its grace, or one whose resources could not be
+    // removed when it died mid-run, leaves shared-memory segments behind in /dev/shm; the
+    // supervisor is the last node of the set, so it removes them before it leaves.
+    let cleanup = rt.node.try_cleanup_dead_nodes();
+    supervisor.events.record(
+        ServiceId::Supervisor,
+        "cleanup_dead_nodes",
+        &format!(
+            "cleaned={} failed={}",
+            cleanup.cleanups, cleanup.failed_cleanups
+        ),
+    );
     supervisor
         .events
         .record(ServiceId::Supervisor, "shutdown_complete", "");
