@@ -296,6 +296,20 @@ impl Supervisor {
         Ok(())
     }
 
+    /// Removes the resources (shared memory included) of every node of the set whose process
+    /// died, and records how many under the service `id` that caused it.
+    fn cleanup_dead_nodes(&mut self, node: &Node<ipc::Service>, id: ServiceId) {
+        let cleanup = node.try_cleanup_dead_nodes();
+        self.events.record(
+            id,
+            "cleanup_dead_nodes",
+            &format!(
+                "cleaned={} failed={}",
+                cleanup.cleanups, cleanup.failed_cleanups
+            ),
+        );
+    }
+
     /// Kills (SIGKILL) a process that stopped beating, so it is reaped and restarted.
     fn kill_hung(&mut self, index: usize, silent_for: Duration) {
         let process = &mut self.processes[index];
@@ -354,15 +368,7 @@ impl Supervisor {
             }
             process.restart_at = Some(Instant::now() + process.backoff.after_exit(lived, &policy));
             // The dead process's ports stay registered until someone cleans them up.
-            let cleanup = node.try_cleanup_dead_nodes();
-            self.events.record(
-                id,
-                "cleanup_dead_nodes",
-                &format!(
-                    "cleaned={} failed={}",
-                    cleanup.cleanups, cleanup.failed_cleanups
-                ),
-            );
+            self.cleanup_dead_nodes(node, id);
         }
         Ok(ending)
     }
@@ -828,15 +834,7 @@ fn finish(
     // A child killed because it did not stop in its grace, or one whose resources could not be
     // removed when it died mid-run, leaves shared-memory segments behind in /dev/shm; the
     // supervisor is the last node of the set, so it removes them before it leaves.
-    let cleanup = rt.node.try_cleanup_dead_nodes();
-    supervisor.events.record(
-        ServiceId::Supervisor,
-        "cleanup_dead_nodes",
-        &format!(
-            "cleaned={} failed={}",
-            cleanup.cleanups, cleanup.failed_cleanups
-        ),
-    );
+    supervisor.cleanup_dead_nodes(&rt.node, ServiceId::Supervisor);
     supervisor
         .events
         .record(ServiceId::Supervisor, "shutdown_complete", "");
