@@ -284,7 +284,6 @@ impl Controller for SmcDob {
             if self.gains.use_dob && tau > 0.0 {
                 // A first-order lag from where the coils were toward the new command: its
                 // mean over the sample (the DOB's input) and where it ends.
-                let dt = self.last_dt_s;
                 let a = (-dt / tau).exp();
                 let start = self.coil_force - achieved_n;
                 self.previous_force = achieved_n + start * (tau / dt * (1.0 - a));
