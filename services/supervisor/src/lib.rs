@@ -569,7 +569,8 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
         "supervisor starting the set"
     );
     let mut supervisor = Supervisor::new(&options, &plan, base_env, &rt)?;
-    clean_stale_nodes(&rt);
+    // A stale set from an earlier crashed run with the same prefix must not confuse this one.
+    supervisor.cleanup_dead_nodes(&rt.node, ServiceId::Supervisor);
     let heartbeats = Heartbeats::connect(&rt, &supervisor.processes)?;
     let ending = supervisor
         .spawn_all()
@@ -782,17 +783,6 @@ impl Supervisor {
             base_env,
             deadline_misses: BTreeMap::new(),
         })
-    }
-}
-
-/// A stale set from an earlier crashed run with the same prefix must not confuse this one.
-fn clean_stale_nodes(rt: &Runtime) {
-    let cleanup = rt.node.try_cleanup_dead_nodes();
-    if cleanup.cleanups > 0 {
-        tracing::info!(
-            cleaned = cleanup.cleanups,
-            "removed resources of dead nodes"
-        );
     }
 }
 
