@@ -262,17 +262,30 @@ def jpeg(img, p=0.3, lo=10, hi=85):
     return img
 
 
-def camera_shifts(img, mask, kps):
-    """Every family above, in the order a camera would apply them."""
+# The families whose chance per crop `camera_shifts` can be given (train.py --shift-chance).
+FAMILIES = ("scale", "occlusion", "texture", "shadow", "gradient", "glare", "bubbles", "blur", "noise", "jpeg")
+
+
+def camera_shifts(img, mask, kps, chance=None):
+    """Every family above, in the order a camera would apply them. `chance` maps a family of
+    FAMILIES to its probability per crop instead of the default."""
+    p = {
+        "scale": 0.5, "occlusion": 0.3, "texture": 0.4, "shadow": 0.35, "gradient": 0.3,
+        "glare": 0.35, "bubbles": 0.3, "blur": 0.45, "noise": 0.5, "jpeg": 0.3,
+    }
+    for family, value in (chance or {}).items():
+        if family not in p:
+            raise ValueError(f"unknown shift family {family!r} (one of {', '.join(FAMILIES)})")
+        p[family] = value
     with torch.no_grad():
-        img, mask, kps = scale_shift(img, mask, kps)
-        img, mask = occlude(img, mask, kps)
-        img = texture(img, mask)
+        img, mask, kps = scale_shift(img, mask, kps, p=p["scale"])
+        img, mask = occlude(img, mask, kps, p=p["occlusion"])
+        img = texture(img, mask, p=p["texture"])
         img = photometric(img)
-        img = shading(img)
-        img = glare(img)
-        img = bubbles(img)
-        img = blur(img.clamp(0, 1))
-        img = noise(img)
-        img = jpeg(img.clamp(0, 1))
+        img = shading(img, p_shadow=p["shadow"], p_gradient=p["gradient"])
+        img = glare(img, p=p["glare"])
+        img = bubbles(img, p=p["bubbles"])
+        img = blur(img.clamp(0, 1), p=p["blur"])
+        img = noise(img, p=p["noise"])
+        img = jpeg(img.clamp(0, 1), p=p["jpeg"])
         return img.clamp(0, 1), mask, kps

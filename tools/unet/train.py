@@ -207,9 +207,23 @@ def main():
     ap.add_argument("--dump-augmented", default=None,
                     help="also write this many shifted training crops as a split to DIR (e.g. quantization calibration)",
                     nargs=2, metavar=("DIR", "COUNT"))
+    ap.add_argument("--shift-chance", action="append", default=[], metavar="FAMILY=P",
+                    help="train with this chance per crop for one camera-shift family (augment.FAMILIES: "
+                         + ", ".join(camera.FAMILIES) + "); repeat for more. Validation keeps the defaults")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--metrics", default=None, help="write final metrics JSON here")
     args = ap.parse_args()
+    chance = {}
+    for item in args.shift_chance:
+        family, _, value = item.partition("=")
+        try:
+            p = float(value)
+        except ValueError:
+            p = float("nan")
+        if family not in camera.FAMILIES or not 0.0 <= p <= 1.0:
+            ap.error(f"--shift-chance {item!r}: expected FAMILY=P with FAMILY one of "
+                     f"{', '.join(camera.FAMILIES)} and P a number in [0, 1]")
+        chance[family] = p
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -251,7 +265,7 @@ def main():
             idx = perm[i:i + args.batch]
             x, m, k = flips(train[0][idx], train[1][idx], train[3][idx])
             if args.augment == "camera":
-                x, m, k = camera.camera_shifts(x, m, k)
+                x, m, k = camera.camera_shifts(x, m, k, chance)
             seg, kp, pres = model(x)
             loss = loss_fn(seg, kp, pres, m, k, train[2][idx])
             opt.zero_grad()
@@ -283,6 +297,7 @@ def main():
     final["train_samples"] = n
     final["augment"] = args.augment
     final["init"] = args.init
+    final["shift_chance"] = chance
     print("test", json.dumps(final))
     if args.metrics:
         with open(args.metrics, "w") as f:
