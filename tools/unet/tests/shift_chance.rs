@@ -68,7 +68,13 @@ fn a_wrong_shift_chance_is_refused_naming_the_option() {
     ] {
         let out = Command::new(venv_python())
             .current_dir(unet_dir())
-            .args(["train.py", "--data", "/nonexistent", "--out", "/nonexistent/x.onnx"])
+            .args([
+                "train.py",
+                "--data",
+                "/nonexistent",
+                "--out",
+                "/nonexistent/x.onnx",
+            ])
             .args(["--shift-chance", item])
             .output()
             .expect("the venv's python runs (scripts/setup_training.sh)");
@@ -78,6 +84,9 @@ fn a_wrong_shift_chance_is_refused_naming_the_option() {
             stderr.contains("--shift-chance") && stderr.contains(names),
             "{item}: {stderr}"
         );
-        assert!(stderr.contains("blur") && stderr.contains("scale"), "{stderr}");
+        assert!(
+            stderr.contains("blur") && stderr.contains("scale"),
+            "{stderr}"
+        );
     }
 }
