@@ -968,6 +968,14 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
             scenario.path.display()
         )));
     }
+    let model_error = config.smc.delay_model_error;
+    if !(model_error.is_finite() && (0.0..=1.0).contains(&model_error)) {
+        return Err(ConfigError::new(format!(
+            "scenario {}: [control.smc] delay_model_error must be within 0..=1 (a fraction of \
+             the delay), got {model_error}",
+            scenario.path.display()
+        )));
+    }
     if let Some((name, why)) = config.latency.invalid_field() {
         return Err(ConfigError::new(format!(
             "scenario {}: [control.latency] {name} {why}",
@@ -1466,6 +1474,12 @@ mod tests {
 
         let error = refused("replan", "replan_clearance_mm = 0.0");
         assert!(error.contains("[control] replan_clearance_mm"), "{error}");
+
+        let error = refused("model error", "[control.smc]\ndelay_model_error = 1.5");
+        assert!(
+            error.contains("[control.smc] delay_model_error") && error.contains("1.5"),
+            "{error}"
+        );
 
         let error = refused("slew", "max_current_slew_a_per_s = 0.0");
         assert!(

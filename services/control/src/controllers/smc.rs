@@ -52,6 +52,12 @@ pub struct SmcGains {
     /// With `auto_schedule`: the DOB's time constant η is kept at or above this many times
     /// the measured capture → actuation delay.
     pub delay_eta_factor: f64,
+    /// With `auto_schedule`: the fraction of the measured capture → actuation delay that counts
+    /// as loop lag in the switching slope's sampled-loop bound (a fraction of m̂/(Δt + τ +
+    /// this·delay)). The latency predictor removes the delay only as far as its nominal force
+    /// model is right: a force the coils make ε off (their calibration error) leaves about
+    /// ε·delay of it in the loop.
+    pub delay_model_error: f64,
     /// With `auto_schedule` and the DOB: what the latency predictor expects of the
     /// disturbance at the actuation time (`ControlInput::predicted_disturbance_n`) leads the
     /// DOB's estimate. The DOB sees a push only through its η filter, late and damped (a 3 Hz
@@ -91,6 +97,7 @@ impl Default for SmcGains {
             sampled_gain_fraction: 0.5,
             sampled_bandwidth_rad: 0.5,
             delay_eta_factor: 2.0,
+            delay_model_error: 0.0,
             predicted_disturbance_lead: true,
             coil_time_constant_s: 0.0,
         }
@@ -160,7 +167,9 @@ impl SmcDob {
         } else {
             0.0
         };
-        let sampled_limit = g.sampled_gain_fraction.max(1e-3) * self.model.mass_kg / (dt + lag);
+        let unpredicted = g.delay_model_error.max(0.0) * input.delay_s.clamp(0.0, 1.0);
+        let sampled_limit =
+            g.sampled_gain_fraction.max(1e-3) * self.model.mass_kg / (dt + lag + unpredicted);
         // Slow u_eq's error dynamics (same damping ratio) when the sample time cannot carry them.
         let omega_n = (g.k2 / g.k3).sqrt();
         // Drag damps the capsule within a sample as well (c·Δt/m̂), so it earns more bandwidth.
@@ -358,5 +367,32 @@ mod tests {
         // And the switching slope stays within the sampled-loop bound.
         let slope = slow.gamma * slow.k4_n / slow.phi_m;
         assert!(slope <= paper.sampled_gain_fraction * 5e-5 / 0.1 * (1.0 + 1e-9));
+    }
+
+    #[test]
+    fn the_delay_the_predictor_may_get_wrong_slows_the_switching_slope() {
+        let model = NominalModel {
+            mass_kg: 5e-5,
+            linear_drag_n_s_per_m: 1.2e-4,
+        };
+        let slope_at = |delay_model_error: f64, delay_s: f64| {
+            let gains = SmcGains {
+                auto_schedule: true,
+                delay_model_error,
+                ..SmcGains::default()
+            };
+            let g = SmcDob::new(gains, model).scheduled(&ControlInput {
+                delay_s,
+                ..input(0.01)
+            });
+            g.gamma * g.k4_n / g.phi_m
+        };
+        // Off (the default), or without a delay, the bound is m̂/Δt's fraction as before.
+        let bound = SmcGains::default().sampled_gain_fraction * 5e-5 / 0.01;
+        assert!((slope_at(0.0, 0.05) - bound).abs() < 1e-9 * bound);
+        assert!((slope_at(0.3, 0.0) - bound).abs() < 1e-9 * bound);
+        // 30 % of a 50 ms delay is 15 ms of loop lag on a 10 ms sample: 2.5x slower.
+        let slowed = slope_at(0.3, 0.05);
+        assert!((slowed - bound * 0.01 / 0.025).abs() < 1e-9 * bound, "{slowed}");
     }
 }
