@@ -393,6 +393,9 @@ mod tests {
         assert!((slope_at(0.3, 0.0) - bound).abs() < 1e-9 * bound);
         // 30 % of a 50 ms delay is 15 ms of loop lag on a 10 ms sample: 2.5x slower.
         let slowed = slope_at(0.3, 0.05);
-        assert!((slowed - bound * 0.01 / 0.025).abs() < 1e-9 * bound, "{slowed}");
+        assert!(
+            (slowed - bound * 0.01 / 0.025).abs() < 1e-9 * bound,
+            "{slowed}"
+        );
     }
 }
