@@ -262,17 +262,18 @@ def jpeg(img, p=0.3, lo=10, hi=85):
     return img
 
 
-# The families whose chance per crop `camera_shifts` can be given (train.py --shift-chance).
-FAMILIES = ("scale", "occlusion", "texture", "shadow", "gradient", "glare", "bubbles", "blur", "noise", "jpeg")
+# Each family's chance per crop in `camera_shifts`, unless given (train.py --shift-chance).
+DEFAULT_CHANCE = {
+    "scale": 0.5, "occlusion": 0.3, "texture": 0.4, "shadow": 0.35, "gradient": 0.3,
+    "glare": 0.35, "bubbles": 0.3, "blur": 0.45, "noise": 0.5, "jpeg": 0.3,
+}
+FAMILIES = tuple(DEFAULT_CHANCE)
 
 
 def camera_shifts(img, mask, kps, chance=None):
     """Every family above, in the order a camera would apply them. `chance` maps a family of
-    FAMILIES to its probability per crop instead of the default."""
-    p = {
-        "scale": 0.5, "occlusion": 0.3, "texture": 0.4, "shadow": 0.35, "gradient": 0.3,
-        "glare": 0.35, "bubbles": 0.3, "blur": 0.45, "noise": 0.5, "jpeg": 0.3,
-    }
+    FAMILIES to its probability per crop instead of DEFAULT_CHANCE's."""
+    p = dict(DEFAULT_CHANCE)
     for family, value in (chance or {}).items():
         if family not in p:
             raise ValueError(f"unknown shift family {family!r} (one of {', '.join(FAMILIES)})")
