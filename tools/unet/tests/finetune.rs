@@ -7,17 +7,11 @@
 //!
 //! Needs PyTorch and onnx in the project's venv (`scripts/setup_training.sh`, which the test
 //! command runs) and the workspace's binaries (unet-import, vision-eval) built beside this one.
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
-fn venv_python() -> PathBuf {
-    std::env::var_os("MILLINAV_VENV")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/millinav/venv")
-        })
-        .join("bin/python")
-}
+mod common;
+use common::venv_python;
 
 /// One localizer's row of a vision-eval table, by column name.
 struct EvalRow {

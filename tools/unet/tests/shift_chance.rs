@@ -7,14 +7,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-fn venv_python() -> PathBuf {
-    std::env::var_os("MILLINAV_VENV")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            PathBuf::from(std::env::var_os("HOME").unwrap_or_default()).join(".cache/millinav/venv")
-        })
-        .join("bin/python")
-}
+mod common;
+use common::venv_python;
 
 fn unet_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).to_owned()
