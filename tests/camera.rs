@@ -150,16 +150,25 @@ fn a_camera_that_vanishes_makes_the_set_safe_and_it_recovers() {
     let mut run = RunSet::start("vanish", &text).expect("start");
     run.assert_completes(Duration::from_secs(120));
     let camera = events(&run);
-    let stalls: Vec<_> = camera
-        .iter()
-        .filter(|e| e.event == "source_stalled")
-        .collect();
     let recoveries: Vec<_> = camera
         .iter()
         .filter(|e| e.event == "source_recovered")
         .collect();
-    assert_eq!((stalls.len(), recoveries.len()), (1, 1), "{camera:?}");
-    let (stalled, recovered) = (stalls[0], recoveries[0]);
+    assert_eq!(recoveries.len(), 1, "{camera:?}");
+    let recovered = recoveries[0];
+    // The twin stops sending frames when its run ends, 3 s of run time after the camera came
+    // back; on a loaded machine the supervisor may stop the camera more than the stall timeout
+    // later, and the camera then reports that silence too. Only that one may follow.
+    let (stalls, after): (Vec<_>, Vec<_>) = camera
+        .iter()
+        .filter(|e| e.event == "source_stalled")
+        .partition(|e| e.time_s < recovered.time_s);
+    assert_eq!(stalls.len(), 1, "{camera:?}");
+    assert!(
+        after.len() <= 1 && after.iter().all(|e| e.time_s > recovered.time_s + 2.5),
+        "a stall while the twin was still running: {camera:?}"
+    );
+    let stalled = stalls[0];
     println!(
         "camera away: stall reported at {:.2} s, recovered at {:.2} s ({})",
         stalled.time_s, recovered.time_s, recovered.detail
