@@ -10,7 +10,8 @@ texture, motion and defocus blur, sensor noise, JPEG (8x8 DCT quantization with 
 This is its own implementation, not the suite's (services/vision/src/perturb.rs, Rust/OpenCV):
 the suite measures what this teaches, so the two share the families, not the code or ranges.
 All functions take and return image (N,3,H,W) float in [0,1], mask (N,H,W) and keypoints
-(N,3,2) in input pixels; they run under torch.no_grad().
+(N,3,2) in input pixels; they run under torch.no_grad(). Each family's chance per crop `p` comes
+from DEFAULT_CHANCE (or train.py --shift-chance) through camera_shifts.
 """
 import math
 
@@ -40,7 +41,7 @@ def _col(v):
     return v[:, None, None, None]
 
 
-def scale_shift(img, mask, kps, p=0.5, lo=0.85, hi=1.18, shift_px=6.0):
+def scale_shift(img, mask, kps, p, lo=0.85, hi=1.18, shift_px=6.0):
     """Zoom about the centre and shift: keypoint p -> c + s (p - c) + t."""
     n, _, h, w = img.shape
     dev = img.device
@@ -60,7 +61,7 @@ def scale_shift(img, mask, kps, p=0.5, lo=0.85, hi=1.18, shift_px=6.0):
     return img, m[:, 0].to(mask.dtype), kps
 
 
-def occlude(img, mask, kps, p=0.3):
+def occlude(img, mask, kps, p):
     """An opaque ellipse over part of the capsule (or anywhere), or a bar across it (a tube, a
     wire, a phantom rib); the truth mask loses what it hides."""
     n, _, h, w = img.shape
@@ -115,7 +116,7 @@ def photometric(img):
     return img.clamp_min(1e-6) ** _col(gamma)
 
 
-def shading(img, p_shadow=0.35, p_gradient=0.3):
+def shading(img, p_shadow, p_gradient):
     """A soft-edged half-plane shadow and a linear illumination gradient."""
     n, _, h, w = img.shape
     dev = img.device
@@ -133,7 +134,7 @@ def shading(img, p_shadow=0.35, p_gradient=0.3):
     return img * factor[:, None]
 
 
-def glare(img, p=0.35):
+def glare(img, p):
     """One or two specular spots (additive, saturating)."""
     n, _, h, w = img.shape
     dev = img.device
@@ -148,7 +149,7 @@ def glare(img, p=0.35):
     return img
 
 
-def bubbles(img, p=0.3, most=6):
+def bubbles(img, p, most=6):
     """Air bubbles: a bright thin rim, a faintly lighter inside (over anything: truth kept)."""
     n, _, h, w = img.shape
     dev = img.device
@@ -165,7 +166,7 @@ def bubbles(img, p=0.3, most=6):
     return img
 
 
-def texture(img, mask, p=0.4):
+def texture(img, mask, p):
     """Smooth floor texture (printed or scratched phantom), mostly behind the capsule."""
     n, _, h, w = img.shape
     dev = img.device
@@ -176,7 +177,7 @@ def texture(img, mask, p=0.4):
     return img + _col(amp) * field * behind[:, None]
 
 
-def blur(img, p=0.45, size=11):
+def blur(img, p, size=11):
     """Motion streak (length 1-10 px, any direction) or defocus (Gaussian sigma 0.3-1.8 px)."""
     n, c, h, w = img.shape
     dev = img.device
@@ -200,7 +201,7 @@ def blur(img, p=0.45, size=11):
     return F.conv2d(padded, weight, groups=n * c).reshape(n, c, h, w)
 
 
-def noise(img, p=0.5):
+def noise(img, p):
     n = img.shape[0]
     dev = img.device
     sigma = torch.where(_chance(n, p, dev), _uniform(n, 0.0, 0.09, dev), torch.zeros(n, device=dev))
@@ -235,7 +236,7 @@ def _quantize_blocks(x, table, scale):
     return back.permute(0, 1, 3, 2, 4).reshape(n, h, w)
 
 
-def jpeg(img, p=0.3, lo=10, hi=85):
+def jpeg(img, p, lo=10, hi=85):
     """JPEG round trip at quality lo..hi (libjpeg's table scaling, 4:2:0 chroma)."""
     n, _, h, w = img.shape
     dev = img.device
