@@ -681,6 +681,35 @@ impl ControlLoop {
         self.gain_estimator.as_ref().map(|e| e.gains())
     }
 
+    /// How far the coil gains may be off (relative 1σ): the online estimate's uncertainty,
+    /// RMS over the coils weighted by the last tracking command's currents (a coil that carries
+    /// none adds no error, however little is known of it), else the prior the coil data is
+    /// trusted to.
+    fn coil_gain_std(&self) -> f64 {
+        let Some(estimator) = &self.gain_estimator else {
+            return self.config.gain_estimation.prior_std;
+        };
+        let std = estimator.gain_std();
+        let weights: Vec<f64> = match &self.last_tracked {
+            Some((_, currents)) => self
+                .coil_ids
+                .iter()
+                .map(|&id| currents.get(id).map_or(0.0, |i| i * i))
+                .collect(),
+            None => vec![1.0; std.len()],
+        };
+        let total: f64 = weights.iter().sum();
+        if total <= 0.0 {
+            return (std.iter().map(|s| s * s).sum::<f64>() / std.len().max(1) as f64).sqrt();
+        }
+        (std.iter()
+            .zip(&weights)
+            .map(|(s, w)| s * s * w)
+            .sum::<f64>()
+            / total)
+            .sqrt()
+    }
+
     /// The estimator itself (counts of used and skipped frames, uncertainties), when on.
     pub fn gain_estimator(&self) -> Option<&CoilGainEstimator> {
         self.gain_estimator.as_ref()
@@ -835,6 +864,7 @@ impl ControlLoop {
                 .predictor
                 .lead_disturbance(actuation_ns, dt)
                 .filter(|_| self.config.latency.compensate),
+            coil_gain_std: self.coil_gain_std(),
         };
         let (force, terms) = self.controller.update(&input);
         command.mode = ControlMode::Track as u32;
@@ -968,11 +998,11 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
             scenario.path.display()
         )));
     }
-    let model_error = config.smc.delay_model_error;
-    if !(model_error.is_finite() && (0.0..=1.0).contains(&model_error)) {
+    let sigmas = config.smc.delay_model_error_sigmas;
+    if !(sigmas.is_finite() && (0.0..=10.0).contains(&sigmas)) {
         return Err(ConfigError::new(format!(
-            "scenario {}: [control.smc] delay_model_error must be within 0..=1 (a fraction of \
-             the delay), got {model_error}",
+            "scenario {}: [control.smc] delay_model_error_sigmas must be within 0..=10 (standard \
+             deviations of the coil gains' uncertainty), got {sigmas}",
             scenario.path.display()
         )));
     }
@@ -1475,9 +1505,12 @@ mod tests {
         let error = refused("replan", "replan_clearance_mm = 0.0");
         assert!(error.contains("[control] replan_clearance_mm"), "{error}");
 
-        let error = refused("model error", "[control.smc]\ndelay_model_error = 1.5");
+        let error = refused(
+            "model error",
+            "[control.smc]\ndelay_model_error_sigmas = -1.5",
+        );
         assert!(
-            error.contains("[control.smc] delay_model_error") && error.contains("1.5"),
+            error.contains("[control.smc] delay_model_error_sigmas") && error.contains("-1.5"),
             "{error}"
         );
 

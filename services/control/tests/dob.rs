@@ -34,6 +34,7 @@ fn holding_input(
         flow_mps,
         high_disturbance: false,
         predicted_disturbance_n,
+        coil_gain_std: 0.0,
     }
 }
 

@@ -27,6 +27,7 @@ fn input() -> ControlInput {
         flow_mps: Vector2::new(0.01, -0.02),
         high_disturbance: false,
         predicted_disturbance_n: None,
+        coil_gain_std: 0.0,
     }
 }
 

@@ -88,6 +88,7 @@ impl ControllerBench {
             flow_mps: Vector2::new(1e-3, -2e-3),
             high_disturbance: false,
             predicted_disturbance_n: None,
+            coil_gain_std: 0.0,
         }
     }
 

@@ -25,6 +25,11 @@ pub struct ControlInput {
     /// from the actuation time, N. None without compensation, before the first pose, or when
     /// the poses are too sparse to resolve the pulsation.
     pub predicted_disturbance_n: Option<Vector2<f64>>,
+    /// How far the coils' gains may be off, as control knows them (relative 1σ): the online
+    /// estimate's uncertainty, RMS over the coils weighted by the currents they carry, when
+    /// `[control.gain_estimation]` is on, else its `prior_std` (the coil data's stated
+    /// accuracy). The force the loop asks for is made about this far off.
+    pub coil_gain_std: f64,
 }
 
 /// Internal signals worth logging.

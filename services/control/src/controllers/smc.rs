@@ -52,12 +52,17 @@ pub struct SmcGains {
     /// With `auto_schedule`: the DOB's time constant η is kept at or above this many times
     /// the measured capture → actuation delay.
     pub delay_eta_factor: f64,
-    /// With `auto_schedule`: the fraction of the measured capture → actuation delay that counts
-    /// as loop lag in the switching slope's sampled-loop bound (a fraction of m̂/(Δt + τ +
-    /// this·delay)). The latency predictor removes the delay only as far as its nominal force
-    /// model is right: a force the coils make ε off (their calibration error) leaves about
-    /// ε·delay of it in the loop.
-    pub delay_model_error: f64,
+    /// With `auto_schedule`: how many standard deviations of the coil gains' uncertainty
+    /// (`ControlInput::coil_gain_std`) the force model may be off, ε. The latency predictor
+    /// removes the measured capture → actuation delay only as far as its nominal force model is
+    /// right: a force the coils make ε off leaves about ε·delay of it in the loop (at most 2ε/ω
+    /// at the loop's bandwidth ω; `unpredicted_lag_s`), which counts as loop lag in the
+    /// switching slope's sampled-loop bound (a fraction of m̂/(Δt + τ + that lag)). 2 (95 %):
+    /// with the online gain estimate's 15 % prior, ε = 0.3 until the gains are learned, which
+    /// held +30 ms of camera latency with a 10 % coil gain error at 100 Hz where 0 loses still
+    /// fluid (README, "Camera latency with a coil calibration error"). 0: off. No effect
+    /// without a measured delay.
+    pub delay_model_error_sigmas: f64,
     /// With `auto_schedule` and the DOB: what the latency predictor expects of the
     /// disturbance at the actuation time (`ControlInput::predicted_disturbance_n`) leads the
     /// DOB's estimate. The DOB sees a push only through its η filter, late and damped (a 3 Hz
@@ -97,7 +102,7 @@ impl Default for SmcGains {
             sampled_gain_fraction: 0.5,
             sampled_bandwidth_rad: 0.5,
             delay_eta_factor: 2.0,
-            delay_model_error: 0.0,
+            delay_model_error_sigmas: 2.0,
             predicted_disturbance_lead: true,
             coil_time_constant_s: 0.0,
         }
@@ -112,6 +117,16 @@ impl Default for SmcGains {
 /// into a slow limit cycle in still fluid under a 60 A/s bound (4.3 cP: 2.19 mm, with the mean
 /// 0.49 mm). About one stroke at the paper's 3 Hz, several η.
 const SLEW_SHORTFALL_MEAN_S: f64 = 0.3;
+
+/// The loop lag a latency predictor whose force model is `model_error` off leaves of a
+/// `delay_s` delay, at the loop's bandwidth `bandwidth_rad_s`. The prediction then misses
+/// ε·(e^(−sD) − 1) of the loop's own response: about ε·D of delay while ωD is small, but never
+/// more than 2ε in magnitude, which at the bandwidth is 2ε/ω of delay. So it is
+/// ε·2·sin(ωD/2)/ω, with ωD at most π.
+fn unpredicted_lag_s(model_error: f64, delay_s: f64, bandwidth_rad_s: f64) -> f64 {
+    let half_phase = (bandwidth_rad_s * delay_s / 2.0).min(std::f64::consts::FRAC_PI_2);
+    model_error * 2.0 * half_phase.sin() / bandwidth_rad_s.max(1e-9)
+}
 
 pub struct SmcDob {
     gains: SmcGains,
@@ -167,9 +182,13 @@ impl SmcDob {
         } else {
             0.0
         };
-        let unpredicted = g.delay_model_error.max(0.0) * input.delay_s.clamp(0.0, 1.0);
-        let sampled_limit =
-            g.sampled_gain_fraction.max(1e-3) * self.model.mass_kg / (dt + lag + unpredicted);
+        let fraction = g.sampled_gain_fraction.max(1e-3);
+        let unpredicted = unpredicted_lag_s(
+            (g.delay_model_error_sigmas.max(0.0) * input.coil_gain_std).min(1.0),
+            input.delay_s.clamp(0.0, 1.0),
+            fraction / (dt + lag),
+        );
+        let sampled_limit = fraction * self.model.mass_kg / (dt + lag + unpredicted);
         // Slow u_eq's error dynamics (same damping ratio) when the sample time cannot carry them.
         let omega_n = (g.k2 / g.k3).sqrt();
         // Drag damps the capsule within a sample as well (c·Δt/m̂), so it earns more bandwidth.
@@ -334,6 +353,7 @@ mod tests {
             flow_mps: Vector2::zeros(),
             high_disturbance: false,
             predicted_disturbance_n: None,
+            coil_gain_std: 0.0,
         }
     }
 
@@ -375,27 +395,47 @@ mod tests {
             mass_kg: 5e-5,
             linear_drag_n_s_per_m: 1.2e-4,
         };
-        let slope_at = |delay_model_error: f64, delay_s: f64| {
+        let slope_at = |sigmas: f64, coil_gain_std: f64, delay_s: f64| {
             let gains = SmcGains {
                 auto_schedule: true,
-                delay_model_error,
+                delay_model_error_sigmas: sigmas,
                 ..SmcGains::default()
             };
             let g = SmcDob::new(gains, model).scheduled(&ControlInput {
                 delay_s,
+                coil_gain_std,
                 ..input(0.01)
             });
             g.gamma * g.k4_n / g.phi_m
         };
-        // Off (the default), or without a delay, the bound is m̂/Δt's fraction as before.
+        // Off, with gains known exactly, or without a delay, the bound is m̂/Δt's fraction.
         let bound = SmcGains::default().sampled_gain_fraction * 5e-5 / 0.01;
-        assert!((slope_at(0.0, 0.05) - bound).abs() < 1e-9 * bound);
-        assert!((slope_at(0.3, 0.0) - bound).abs() < 1e-9 * bound);
-        // 30 % of a 50 ms delay is 15 ms of loop lag on a 10 ms sample: 2.5x slower.
-        let slowed = slope_at(0.3, 0.05);
+        assert!((slope_at(0.0, 0.15, 0.05) - bound).abs() < 1e-9 * bound);
+        assert!((slope_at(2.0, 0.0, 0.05) - bound).abs() < 1e-9 * bound);
+        assert!((slope_at(2.0, 0.15, 0.0) - bound).abs() < 1e-9 * bound);
+        // 2σ of 15 % is ε = 30 %. The loop's bandwidth is the slope over m̂: 0.5/Δt = 50 rad/s.
+        // A 5 ms delay is short against it (ωD = 0.25): it counts as ε·D = 1.5 ms of lag.
+        let short = slope_at(2.0, 0.15, 0.005);
+        let expected = bound * 0.01 / (0.01 + 0.3 * 2.0 * (0.125f64).sin() / 50.0);
         assert!(
-            (slowed - bound * 0.01 / 0.025).abs() < 1e-9 * bound,
-            "{slowed}"
+            (short - expected).abs() < 1e-9 * bound,
+            "{short} {expected}"
         );
+        assert!((0.01 / (0.01 + 0.3 * 0.005) - short / bound).abs() < 2e-3);
+        // A 50 ms delay (ωD = 2.5) counts as 2ε·sin(1.25)/ω ≈ 11.4 ms, less than ε·D = 15 ms;
+        // from ωD = π on (63 ms) every delay counts as the most, 2ε/ω = 12 ms.
+        let slowed = slope_at(2.0, 0.15, 0.05);
+        let expected = bound * 0.01 / (0.01 + 0.3 * 2.0 * (1.25f64).sin() / 50.0);
+        assert!(
+            (slowed - expected).abs() < 1e-9 * bound,
+            "{slowed} {expected}"
+        );
+        let longest = slope_at(2.0, 0.15, 0.1);
+        assert!((longest - bound * 0.01 / (0.01 + 0.012)).abs() < 1e-9 * bound);
+        assert!((slope_at(2.0, 0.15, 0.5) - longest).abs() < 1e-9 * bound);
+        // As the gains are learned the slope comes back; a wild uncertainty counts as ε = 1.
+        assert!(slope_at(2.0, 0.02, 0.05) > slowed);
+        let whole = slope_at(2.0, 5.0, 0.1);
+        assert!((whole - bound * 0.01 / (0.01 + 0.04)).abs() < 1e-9 * bound);
     }
 }
