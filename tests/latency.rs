@@ -80,22 +80,29 @@ fn run_seed(
     m
 }
 
+/// `held` completed below the paper's RMSE of its cell (`bound`, mm), and `without` (the same
+/// run without what `what` names) lost the robot or tracked more than 5x worse.
+fn assert_held_only_with(held: &Metrics, without: &Metrics, bound: f64, what: &str) {
+    assert!(
+        held.completed && held.rmse_mm <= bound,
+        "with {what}: RMSE {:.2} mm (paper {bound:.2}), completed {}",
+        held.rmse_mm,
+        held.completed
+    );
+    assert!(
+        !without.completed || without.rmse_mm > 5.0 * bound,
+        "without {what} the loop did well too (RMSE {:.2} mm)",
+        without.rmse_mm
+    );
+}
+
 fn assert_recovered(viscosity_cp: f64, flow: FlowSetting, frame_period_ms: f64, frames: u32) {
     let compensated = run(viscosity_cp, flow, frame_period_ms, frames, true);
+    // Fed the stale pose, the same controller loses the robot or oscillates far off the path.
     let stale = run(viscosity_cp, flow, frame_period_ms, frames, false);
     let bound = paper_smc_dob_rmse_mm(viscosity_cp, flow).expect("the paper reports this cell");
-    assert!(
-        compensated.completed && compensated.rmse_mm <= bound,
-        "{viscosity_cp} cP {flow:?}: compensated RMSE {:.2} mm (paper {bound:.2}), completed {}",
-        compensated.rmse_mm,
-        compensated.completed
-    );
-    // Fed the stale pose, the same controller loses the robot or oscillates far off the path.
-    assert!(
-        !stale.completed || stale.rmse_mm > 5.0 * bound,
-        "{viscosity_cp} cP {flow:?}: the uncompensated loop did well (RMSE {:.2} mm)",
-        stale.rmse_mm
-    );
+    let what = format!("latency compensation ({viscosity_cp} cP {flow:?})");
+    assert_held_only_with(&compensated, &stale, bound, &what);
 }
 
 #[test]
@@ -142,18 +149,7 @@ fn latency_with_a_coil_gain_error_is_held_in_still_fluid() {
     let held = run_seed(4.3, still, 10.0, 3, true, 2, with_gain_error(None));
     let unshared = run_seed(4.3, still, 10.0, 3, true, 2, with_gain_error(Some(0.0)));
     let bound = paper_smc_dob_rmse_mm(4.3, still).expect("the paper reports this cell");
-    assert!(
-        held.completed && held.rmse_mm <= bound,
-        "default: RMSE {:.2} mm (paper {bound:.2}), completed {}",
-        held.rmse_mm,
-        held.completed
-    );
-    assert!(
-        !unshared.completed || unshared.rmse_mm > 5.0 * bound,
-        "delay_model_error_sigmas 0 held it too (RMSE {:.2} mm): the test no longer shows why the \
-         default is not 0",
-        unshared.rmse_mm
-    );
+    assert_held_only_with(&held, &unshared, bound, "the delay share (default sigmas)");
 }
 
 /// Through the real process set (rendered frames stamped with capture and grab time, UNet
