@@ -690,24 +690,23 @@ impl ControlLoop {
             return self.config.gain_estimation.prior_std;
         };
         let std = estimator.gain_std();
-        let weights: Vec<f64> = match &self.last_tracked {
-            Some((_, currents)) => self
-                .coil_ids
-                .iter()
-                .map(|&id| currents.get(id).map_or(0.0, |i| i * i))
-                .collect(),
-            None => vec![1.0; std.len()],
+        let carried: Vec<f64> = self
+            .coil_ids
+            .iter()
+            .map(|&id| {
+                self.last_tracked
+                    .map_or(0.0, |(_, currents)| currents.get(id).map_or(0.0, |i| i * i))
+            })
+            .collect();
+        // Before any current flows, every coil counts alike.
+        let weights = if carried.iter().all(|w| *w == 0.0) {
+            vec![1.0; std.len()]
+        } else {
+            carried
         };
         let total: f64 = weights.iter().sum();
-        if total <= 0.0 {
-            return (std.iter().map(|s| s * s).sum::<f64>() / std.len().max(1) as f64).sqrt();
-        }
-        (std.iter()
-            .zip(&weights)
-            .map(|(s, w)| s * s * w)
-            .sum::<f64>()
-            / total)
-            .sqrt()
+        let weighted: f64 = std.iter().zip(&weights).map(|(s, w)| s * s * w).sum();
+        (weighted / total.max(f64::MIN_POSITIVE)).sqrt()
     }
 
     /// The estimator itself (counts of used and skipped frames, uncertainties), when on.
