@@ -17,9 +17,11 @@ Training applies the camera's shifts to every batch (augment.py: scale, occlusio
 lighting, shadow, glare, bubbles, texture, blur, noise, JPEG) on top of flips and rotations;
 early stopping watches the validation loss on clean crops and on a fixed shifted copy of them.
 Beside the ONNX file it writes the PyTorch weights (.pt), from which --init fine-tunes.
+Two departures from the paper's recipe, off by default: --iou-weight adds a soft-IoU term to
+the loss, --ema keeps a moving average of the weights (README, Vision: tried on a GPU, no gain).
 
 Usage: python3 train.py --data DATASET_DIR [--data MORE_TRAIN_DIR ...] --out model.onnx
-       [--epochs 60] [--init model.pt --lr 3e-4] [--augment flips]
+       [--epochs 60] [--init model.pt --lr 3e-4] [--augment flips] [--iou-weight 0.5] [--ema 0.999]
 """
 import argparse
 import json
@@ -141,12 +143,24 @@ def flips(img, mask, kps):
     return img, mask, kps
 
 
-def loss_fn(seg, kp, presence, mask, kps, has):
+def soft_jaccard(seg, mask):
+    """1 - soft IoU of the capsule class over the whole batch: the same pixel-pooled overlap that
+    evaluate() and vision-eval report, made differentiable with the softmax probability."""
+    p = torch.softmax(seg, dim=1)[:, 1]
+    t = mask.float()
+    inter = (p * t).sum()
+    return 1.0 - inter / ((p + t).sum() - inter + 1.0)
+
+
+def loss_fn(seg, kp, presence, mask, kps, has, iou_weight=0.0):
     ce = F.cross_entropy(seg, mask.long())
     weight = has[:, None, None]
     l1 = (weight * (kp - kps).abs() / INPUT).sum() / (weight.sum() * 6 + 1e-6)
     pres = F.binary_cross_entropy_with_logits(presence[:, 0], has)
-    return ce + 0.5 * l1 + 0.1 * pres
+    loss = ce + 0.5 * l1 + 0.1 * pres
+    if iou_weight > 0.0:
+        loss = loss + iou_weight * soft_jaccard(seg, mask)
+    return loss
 
 
 def to_tensors(images, masks, has, kps, device):
@@ -158,7 +172,7 @@ def to_tensors(images, masks, has, kps, device):
     )
 
 
-def evaluate(model, data, device, batch=256):
+def evaluate(model, data, device, batch=256, iou_weight=0.0):
     model.eval()
     images, masks, has, kps = data
     tp = fp = fn = 0
@@ -168,7 +182,7 @@ def evaluate(model, data, device, batch=256):
         for i in range(0, images.shape[0], batch):
             x, m, h, k = images[i:i + batch], masks[i:i + batch], has[i:i + batch], kps[i:i + batch]
             seg, kp, pres = model(x)
-            total += loss_fn(seg, kp, pres, m, k, h).item() * x.shape[0]
+            total += loss_fn(seg, kp, pres, m, k, h, iou_weight).item() * x.shape[0]
             pred = seg.argmax(1)
             tp += ((pred == 1) & (m == 1)).sum().item()
             fp += ((pred == 1) & (m == 0)).sum().item()
@@ -210,6 +224,11 @@ def main():
     ap.add_argument("--shift-chance", action="append", default=[], metavar="FAMILY=P",
                     help="train with this chance per crop for one camera-shift family (augment.FAMILIES: "
                          + ", ".join(camera.FAMILIES) + "); repeat for more. Validation keeps the defaults")
+    ap.add_argument("--iou-weight", type=float, default=0.0,
+                    help="add this weight x (1 - soft IoU of the mask) to the paper's loss (CE + 0.5 L1); 0: the paper's")
+    ap.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                    help="evaluate, early-stop and export an exponential moving average of the weights "
+                         "(e.g. 0.999 per step); 0: the weights as trained")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--metrics", default=None, help="write final metrics JSON here")
     args = ap.parse_args()
@@ -224,6 +243,10 @@ def main():
             ap.error(f"--shift-chance {item!r}: expected FAMILY=P with FAMILY one of "
                      f"{', '.join(camera.FAMILIES)} and P a number in [0, 1]")
         chance[family] = p
+    if not 0.0 <= args.iou_weight <= 10.0:
+        ap.error(f"--iou-weight {args.iou_weight}: expected a number in [0, 10]")
+    if not (args.ema == 0.0 or 0.9 <= args.ema < 1.0):
+        ap.error(f"--ema {args.ema}: expected 0 (off) or a decay in [0.9, 1)")
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -252,6 +275,13 @@ def main():
     if args.init:
         model.load_state_dict(torch.load(args.init, map_location=device))
         print(f"fine-tuning from {args.init}")
+    # The weights that are evaluated and exported: the trained ones, or their moving average
+    # (batch-norm statistics averaged too).
+    averaged = None
+    if args.ema > 0.0:
+        averaged = torch.optim.swa_utils.AveragedModel(
+            model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(args.ema), use_buffers=True)
+    scored = averaged.module if averaged is not None else model
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=4)
     best, best_state, stale = float("inf"), None, 0
@@ -267,12 +297,14 @@ def main():
             if args.augment == "camera":
                 x, m, k = camera.camera_shifts(x, m, k, chance)
             seg, kp, pres = model(x)
-            loss = loss_fn(seg, kp, pres, m, k, train[2][idx])
+            loss = loss_fn(seg, kp, pres, m, k, train[2][idx], args.iou_weight)
             opt.zero_grad()
             loss.backward()
             opt.step()
-        clean = evaluate(model, val, device)
-        shifted = evaluate(model, val_shifted, device)
+            if averaged is not None:
+                averaged.update_parameters(model)
+        clean = evaluate(scored, val, device, iou_weight=args.iou_weight)
+        shifted = evaluate(scored, val_shifted, device, iou_weight=args.iou_weight)
         score = clean["loss"] + shifted["loss"]
         sched.step(score)
         summary = {k: round(v, 4) for k, v in clean.items()}
@@ -280,7 +312,7 @@ def main():
         print(f"epoch {epoch:3d} val {json.dumps(summary)} lr {opt.param_groups[0]['lr']:.1e} t {time.time() - start:.0f}s", flush=True)
         if score < best - 1e-5:
             best, stale = score, 0
-            best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            best_state = {k: v.detach().clone() for k, v in scored.state_dict().items()}
         else:
             stale += 1
             if stale >= args.patience:
@@ -291,13 +323,15 @@ def main():
             break
     if best_state is not None:
         model.load_state_dict(best_state)
-    final = evaluate(model, test, device)
-    final["shifted"] = evaluate(model, test_shifted, device)
+    final = evaluate(model, test, device, iou_weight=args.iou_weight)
+    final["shifted"] = evaluate(model, test_shifted, device, iou_weight=args.iou_weight)
     final["epochs"] = epoch + 1
     final["train_samples"] = n
     final["augment"] = args.augment
     final["init"] = args.init
     final["shift_chance"] = chance
+    final["iou_weight"] = args.iou_weight
+    final["ema"] = args.ema
     print("test", json.dumps(final))
     if args.metrics:
         with open(args.metrics, "w") as f:

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 mod common;
-use common::venv_python;
+use common::{train_py_refusal, venv_python};
 
 fn unet_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).to_owned()
@@ -60,20 +60,8 @@ fn a_wrong_shift_chance_is_refused_naming_the_option() {
         ("jpeg=1.5", "jpeg=1.5"),
         ("jpeg", "'jpeg'"),
     ] {
-        let out = Command::new(venv_python())
-            .current_dir(unet_dir())
-            .args([
-                "train.py",
-                "--data",
-                "/nonexistent",
-                "--out",
-                "/nonexistent/x.onnx",
-            ])
-            .args(["--shift-chance", item])
-            .output()
-            .expect("the venv's python runs (scripts/setup_training.sh)");
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert_eq!(out.status.code(), Some(2), "{item}: {stderr}");
+        let (code, stderr) = train_py_refusal(&["--shift-chance", item]);
+        assert_eq!(code, Some(2), "{item}: {stderr}");
         assert!(
             stderr.contains("--shift-chance") && stderr.contains(names),
             "{item}: {stderr}"
