@@ -17,6 +17,7 @@ import os
 import tempfile
 
 import numpy as np
+import onnx
 from onnxruntime.quantization import (
     CalibrationDataReader,
     CalibrationMethod,
@@ -27,18 +28,24 @@ from onnxruntime.quantization import (
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 INPUT = 96
-# The keypoint head stays float: the soft-argmax over 96x96 heatmaps needs more than 8 bits of
-# logit resolution (quantized, the tip error grew from 0.009 to 0.2 mm on the test set).
-KEYPOINT_HEAD = [
-    "/heat/Conv",
-    "/Reshape",
-    "/Softmax",
-    "/Mul",
-    "/Mul_1",
-    "/ReduceSum",
-    "/ReduceSum_1",
-    "/Concat_3",
-]
+def keypoint_head(path):
+    """The nodes from the heatmap convolution to the "keypoints" output, which stay float: the
+    soft-argmax over 96x96 heatmaps needs more than 8 bits of logit resolution (quantized, the
+    tip error grew from 0.009 to 0.2 mm on the test set). Found in the graph, so any depth or
+    width of train.py's UNet quantizes the same way."""
+    graph = onnx.load(path).graph
+    producer = {output: node for node in graph.node for output in node.output}
+    head, pending = [], ["keypoints"]
+    while pending:
+        node = producer.get(pending.pop())
+        if node is None or node.name in head:
+            continue
+        head.append(node.name)
+        if node.op_type != "Conv":  # the heatmap convolution is the head's first node
+            pending.extend(node.input)
+    if not any(name.startswith("/heat/") for name in head):
+        raise SystemExit(f"{path}: no heatmap convolution (/heat/Conv) before the keypoints output")
+    return head
 
 
 class RoiReader(CalibrationDataReader):
@@ -85,7 +92,7 @@ def main():
             weight_type=QuantType.QInt8,
             activation_type=QuantType.QUInt8,
             calibrate_method=CalibrationMethod.MinMax,
-            nodes_to_exclude=KEYPOINT_HEAD + args.exclude,
+            nodes_to_exclude=keypoint_head(prepared) + args.exclude,
             # 7-bit weights: on x86 CPUs without VNNI (AVX2-only, AVX-512 without VNNI) ONNX
             # Runtime multiplies u8 x s8 with VPMADDUBSW, whose 16-bit pair sums saturate with
             # full-range weights. Quantized without this, the model lost the capsule there

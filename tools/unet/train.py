@@ -92,30 +92,46 @@ def conv_block(cin, cout):
 
 
 class UNet(nn.Module):
-    def __init__(self, c=(16, 32, 64)):
+    """`levels` resolutions (the input's and levels - 1 halvings), `width` channels at the first,
+    doubling at each. The default, 3 levels of 16/32/64, is the committed model; the module names
+    (enc1.., bottom, upK, decK) are the same at every depth, so .pt files stay loadable."""
+
+    def __init__(self, levels=3, width=16):
         super().__init__()
-        self.enc1 = conv_block(3, c[0])
-        self.enc2 = conv_block(c[0], c[1])
-        self.bottom = conv_block(c[1], c[2])
-        self.up2 = nn.ConvTranspose2d(c[2], c[1], 2, stride=2)
-        self.dec2 = conv_block(2 * c[1], c[1])
-        self.up1 = nn.ConvTranspose2d(c[1], c[0], 2, stride=2)
-        self.dec1 = conv_block(2 * c[0], c[0])
+        if levels < 2 or width < 1 or INPUT % 2 ** (levels - 1):
+            raise ValueError(f"a UNet of {levels} levels and width {width} does not fit a {INPUT} px input")
+        c = [width * 2 ** i for i in range(levels)]
+        self.levels = levels
+        for k in range(1, levels):
+            self.add_module(f"enc{k}", conv_block(3 if k == 1 else c[k - 2], c[k - 1]))
+        self.bottom = conv_block(c[-2], c[-1])
+        for k in range(levels - 1, 0, -1):
+            self.add_module(f"up{k}", nn.ConvTranspose2d(c[k], c[k - 1], 2, stride=2))
+            self.add_module(f"dec{k}", conv_block(2 * c[k - 1], c[k - 1]))
         self.seg = nn.Conv2d(c[0], 2, 1)
         self.heat = nn.Conv2d(c[0], 3, 1)
-        self.presence = nn.Linear(c[2], 1)
+        self.presence = nn.Linear(c[-1], 1)
         ys, xs = torch.meshgrid(torch.arange(INPUT, dtype=torch.float32), torch.arange(INPUT, dtype=torch.float32), indexing="ij")
         self.register_buffer("grid_x", xs.reshape(1, 1, -1))
         self.register_buffer("grid_y", ys.reshape(1, 1, -1))
 
+    @staticmethod
+    def shape_of(state):
+        """(levels, width) of the UNet whose state dict this is."""
+        levels = 1 + sum(1 for key in state if key.startswith("enc") and key.endswith(".0.weight"))
+        return levels, state["enc1.0.weight"].shape[0]
+
     def forward(self, x):
-        e1 = self.enc1(x)
-        e2 = self.enc2(F.max_pool2d(e1, 2))
-        b = self.bottom(F.max_pool2d(e2, 2))
-        d2 = self.dec2(torch.cat([self.up2(b), e2], 1))
-        d1 = self.dec1(torch.cat([self.up1(d2), e1], 1))
-        seg = self.seg(d1)
-        heat = self.heat(d1).flatten(2)
+        skips = []
+        for k in range(1, self.levels):
+            x = getattr(self, f"enc{k}")(x if k == 1 else F.max_pool2d(x, 2))
+            skips.append(x)
+        b = self.bottom(F.max_pool2d(x, 2))
+        d = b
+        for k in range(self.levels - 1, 0, -1):
+            d = getattr(self, f"dec{k}")(torch.cat([getattr(self, f"up{k}")(d), skips[k - 1]], 1))
+        seg = self.seg(d)
+        heat = self.heat(d).flatten(2)
         prob = torch.softmax(heat, dim=2)
         kx = (prob * self.grid_x).sum(2)
         ky = (prob * self.grid_y).sum(2)
@@ -229,6 +245,10 @@ def main():
     ap.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
                     help="evaluate, early-stop and export an exponential moving average of the weights "
                          "(e.g. 0.999 per step); 0: the weights as trained")
+    ap.add_argument("--levels", type=int, default=None,
+                    help="resolutions of the UNet (default 3, or --init's); more see wider, cost more per crop")
+    ap.add_argument("--width", type=int, default=None,
+                    help="channels at full resolution, doubling per level (default 16, or --init's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--metrics", default=None, help="write final metrics JSON here")
     args = ap.parse_args()
@@ -245,8 +265,16 @@ def main():
         chance[family] = p
     if not 0.0 <= args.iou_weight <= 10.0:
         ap.error(f"--iou-weight {args.iou_weight}: expected a number in [0, 10]")
+    if args.levels is not None and not 2 <= args.levels <= 5:
+        ap.error(f"--levels {args.levels}: expected 2 to 5 (the 96 px input halves at each)")
+    if args.width is not None and not 4 <= args.width <= 64:
+        ap.error(f"--width {args.width}: expected 4 to 64 channels")
     if not (args.ema == 0.0 or 0.9 <= args.ema < 1.0):
         ap.error(f"--ema {args.ema}: expected 0 (off) or a decay in [0.9, 1)")
+    # The output folders now, not after the training: a run is never lost to a missing folder.
+    for path in (args.out, args.metrics):
+        if path and os.path.dirname(path):
+            os.makedirs(os.path.dirname(path), exist_ok=True)
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -271,10 +299,17 @@ def main():
         mm_per_px = load_labels(f"{args.data[0]}/train")[0, 10]
         save_split(directory, img, mask, train[2][idx], kps, mm_per_px)
         print(f"wrote {idx.shape[0]} shifted training crops to {directory}")
-    model = UNet().to(device)
     if args.init:
-        model.load_state_dict(torch.load(args.init, map_location=device))
-        print(f"fine-tuning from {args.init}")
+        state = torch.load(args.init, map_location=device)
+        levels, width = UNet.shape_of(state)
+        if (args.levels or levels, args.width or width) != (levels, width):
+            sys.exit(f"--init {args.init}: a UNet of {levels} levels and width {width}, "
+                     f"not the --levels {args.levels or levels} --width {args.width or width} asked for")
+        model = UNet(levels, width).to(device)
+        model.load_state_dict(state)
+        print(f"fine-tuning from {args.init} ({levels} levels, width {width})")
+    else:
+        model = UNet(args.levels or 3, args.width or 16).to(device)
     # The weights that are evaluated and exported: the trained ones, or their moving average
     # (batch-norm statistics averaged too).
     averaged = None
@@ -330,6 +365,7 @@ def main():
     final["augment"] = args.augment
     final["init"] = args.init
     final["shift_chance"] = chance
+    final["levels"], final["width"] = model.levels, model.enc1[0].out_channels
     final["iou_weight"] = args.iou_weight
     final["ema"] = args.ema
     print("test", json.dumps(final))

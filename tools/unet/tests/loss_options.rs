@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 mod common;
-use common::{train_py_refusal, venv_python};
+use common::{scratch_with_tiny_split, train_py_refusal, venv_python};
 
 fn unet_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).to_owned()
@@ -76,23 +76,7 @@ print("soft", train.soft_jaccard(seg, mask).item())
 
 #[test]
 fn a_run_with_both_trains_and_records_them() {
-    let dir = std::env::temp_dir().join(format!("millinav-loss-options-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let data = dir.join("data");
-    // A tiny split of random crops with a box capsule, in unet-dataset's format.
-    let make = r#"
-import sys, torch, train
-torch.manual_seed(0)
-for split in ("train", "val"):
-    n = 8
-    img = torch.rand(n, 3, 96, 96)
-    mask = torch.zeros(n, 96, 96, dtype=torch.uint8)
-    mask[:, 40:56, 30:66] = 1
-    img[:, 2] = torch.where(mask.bool(), 0.9, img[:, 2])
-    kps = torch.tensor([[[65.0, 48.0], [48.0, 48.0], [31.0, 48.0]]]).repeat(n, 1, 1)
-    train.save_split(f"{sys.argv[1]}/{split}", img, mask, torch.ones(n), kps, 0.09)
-"#;
-    python(make, &[data.to_str().unwrap()]);
+    let (dir, data) = scratch_with_tiny_split("loss-options");
     let model = dir.join("m.onnx");
     let metrics = dir.join("m.json");
     let out = Command::new(venv_python())

@@ -33,3 +33,37 @@ pub fn train_py_refusal(options: &[&str]) -> (Option<i32>, String) {
         String::from_utf8_lossy(&out.stderr).into_owned(),
     )
 }
+
+/// A fresh scratch folder named for the test and process, with a tiny split in `data/` (train/
+/// and val/, 8 random crops each with a box capsule, in unet-dataset's format), for runs of
+/// train.py that only need to run: (folder, split).
+#[allow(dead_code)] // not every test binary that includes this module trains
+pub fn scratch_with_tiny_split(name: &str) -> (PathBuf, PathBuf) {
+    let dir = std::env::temp_dir().join(format!("millinav-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let data = dir.join("data");
+    let script = r#"
+import sys, torch, train
+torch.manual_seed(0)
+for split in ("train", "val"):
+    n = 8
+    img = torch.rand(n, 3, 96, 96)
+    mask = torch.zeros(n, 96, 96, dtype=torch.uint8)
+    mask[:, 40:56, 30:66] = 1
+    img[:, 2] = torch.where(mask.bool(), 0.9, img[:, 2])
+    kps = torch.tensor([[[65.0, 48.0], [48.0, 48.0], [31.0, 48.0]]]).repeat(n, 1, 1)
+    train.save_split(f"{sys.argv[1]}/{split}", img, mask, torch.ones(n), kps, 0.09)
+"#;
+    let out = std::process::Command::new(venv_python())
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["-c", script])
+        .arg(&data)
+        .output()
+        .expect("the venv's python runs (scripts/setup_training.sh)");
+    assert!(
+        out.status.success(),
+        "tiny split: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (dir, data)
+}
