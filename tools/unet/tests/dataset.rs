@@ -133,6 +133,7 @@ fn every_style_keeps_the_truth_on_the_capsule_and_the_styles_differ() {
 }
 
 #[test]
+#[cfg(feature = "labelme")] // unet-import reads the frames with OpenCV
 fn labelled_frames_import_back_into_crops_with_their_truth() {
     let dir = temp_dir("labelme");
     let frames = dir.join("frames");

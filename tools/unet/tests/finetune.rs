@@ -7,6 +7,7 @@
 //!
 //! Needs PyTorch and onnx in the project's venv (`scripts/setup_training.sh`, which the test
 //! command runs) and the workspace's binaries (unet-import, vision-eval) built beside this one.
+#![cfg(feature = "labelme")] // unet-import reads the frames with OpenCV
 use std::path::Path;
 use std::process::Command;
 

@@ -3,6 +3,7 @@
 //! LabelMe (a polygon around the capsule, tip and tail points), one frame without a capsule.
 //! The crops must carry the same keypoints and (to the polygon's resolution) the same mask as the
 //! renderer's own truth; bad label files must be refused naming the file and the shape.
+#![cfg(feature = "labelme")] // unet-import reads the frames with OpenCV
 use std::path::{Path, PathBuf};
 use std::process::Command;
 

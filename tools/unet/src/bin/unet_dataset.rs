@@ -16,9 +16,12 @@ use fieldmaps::phantom::ImageGeometry;
 use fieldmaps::rig::RobotParams;
 use fieldmaps::rigfile::Rig;
 use indicatif::{ProgressBar, ProgressStyle};
-use millinav_plant::render::{blur_rgb, Camera, Palette};
+#[cfg(feature = "labelme")]
+use millinav_plant::render::blur_rgb;
+use millinav_plant::render::{Camera, Palette};
 use millinav_roi::dataset::{Label, Split};
 use millinav_roi::roi::{extract_mask, extract_rgb, Crop, CROP_PX};
+#[cfg(feature = "labelme")]
 use millinav_unet::labelme::{write_frame, Capsule};
 use nalgebra::Vector2;
 use rand::{Rng, SeedableRng};
@@ -208,6 +211,7 @@ fn main() -> anyhow::Result<()> {
 
 /// Full frames with LabelMe labels, as a person would label them (the capsule's outline, tip and
 /// tail points), in the style's look.
+#[cfg(feature = "labelme")]
 fn export_labelme(rig: &Rig, frames: usize, args: &Args) -> anyhow::Result<()> {
     let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
     let geometry = rig.camera.geometry;
@@ -248,6 +252,15 @@ fn export_labelme(rig: &Rig, frames: usize, args: &Args) -> anyhow::Result<()> {
     }
     bar.finish();
     Ok(())
+}
+
+/// Without OpenCV (built with --no-default-features) there is no image writer.
+#[cfg(not(feature = "labelme"))]
+fn export_labelme(_rig: &Rig, _frames: usize, _args: &Args) -> anyhow::Result<()> {
+    anyhow::bail!(
+        "--labelme-frames: this unet-dataset was built without OpenCV (--no-default-features); \
+         build it with the default features to write labelled frames"
+    )
 }
 
 /// The cameras of one export (each with its background palette baked in) and the style that
