@@ -246,7 +246,7 @@ def main():
                     help="evaluate, early-stop and export an exponential moving average of the weights "
                          "(e.g. 0.999 per step); 0: the weights as trained")
     ap.add_argument("--levels", type=int, default=None,
-                    help="resolutions of the UNet (default 3, or --init's); more see wider, cost more per crop")
+                    help="resolutions of the UNet (default 3, or --init's); each more sees twice as far and costs more per crop")
     ap.add_argument("--width", type=int, default=None,
                     help="channels at full resolution, doubling per level (default 16, or --init's)")
     ap.add_argument("--seed", type=int, default=0)
@@ -271,6 +271,16 @@ def main():
         ap.error(f"--width {args.width}: expected 4 to 64 channels")
     if not (args.ema == 0.0 or 0.9 <= args.ema < 1.0):
         ap.error(f"--ema {args.ema}: expected 0 (off) or a decay in [0.9, 1)")
+    # The starting weights' shape before any data is read, so a wrong --init fails at once.
+    init_state, shape = None, (args.levels or 3, args.width or 16)
+    if args.init:
+        if not os.path.isfile(args.init):
+            ap.error(f"--init {args.init}: no such file")
+        init_state = torch.load(args.init, map_location="cpu")
+        shape = UNet.shape_of(init_state)
+        if (args.levels or shape[0], args.width or shape[1]) != shape:
+            sys.exit(f"--init {args.init}: a UNet of {shape[0]} levels and width {shape[1]}, "
+                     f"not the --levels {args.levels or shape[0]} --width {args.width or shape[1]} asked for")
     # The output folders now, not after the training: a run is never lost to a missing folder.
     for path in (args.out, args.metrics):
         if path and os.path.dirname(path):
@@ -299,17 +309,11 @@ def main():
         mm_per_px = load_labels(f"{args.data[0]}/train")[0, 10]
         save_split(directory, img, mask, train[2][idx], kps, mm_per_px)
         print(f"wrote {idx.shape[0]} shifted training crops to {directory}")
-    if args.init:
-        state = torch.load(args.init, map_location=device)
-        levels, width = UNet.shape_of(state)
-        if (args.levels or levels, args.width or width) != (levels, width):
-            sys.exit(f"--init {args.init}: a UNet of {levels} levels and width {width}, "
-                     f"not the --levels {args.levels or levels} --width {args.width or width} asked for")
-        model = UNet(levels, width).to(device)
-        model.load_state_dict(state)
-        print(f"fine-tuning from {args.init} ({levels} levels, width {width})")
-    else:
-        model = UNet(args.levels or 3, args.width or 16).to(device)
+    model = UNet(*shape)
+    if init_state is not None:
+        model.load_state_dict(init_state)
+        print(f"fine-tuning from {args.init} ({shape[0]} levels, width {shape[1]})")
+    model = model.to(device)
     # The weights that are evaluated and exported: the trained ones, or their moving average
     # (batch-norm statistics averaged too).
     averaged = None

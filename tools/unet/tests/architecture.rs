@@ -2,14 +2,15 @@
 //! that do not exist yet, records its shape, exports the service's inputs and outputs, and
 //! quantizes with its keypoint head kept float (quantize.py finds the head in the graph, so the
 //! check holds whatever the depth); `--init` takes the shape from the weights and refuses a
-//! contradicting `--levels`. The default shape exports the committed model's graph node for node.
+//! contradicting `--levels`; missing weights and shapes out of range are refused before any data
+//! is read. The default shape exports the committed model's graph node for node.
 //!
 //! Needs PyTorch in the project's venv (`scripts/setup_training.sh`, which the test command runs).
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 mod common;
-use common::{scratch_with_tiny_split, venv_python};
+use common::{scratch_with_tiny_split, train_py_refusal, venv_python};
 
 fn unet_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).to_owned()
@@ -134,6 +135,22 @@ fn a_deeper_unet_trains_quantizes_and_keeps_its_shape_on_init() {
         "{stderr}"
     );
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn missing_weights_or_a_shape_out_of_range_are_refused_before_any_data_is_read() {
+    for (options, names) in [
+        (
+            &["--init", "/nonexistent/w.pt"][..],
+            "--init /nonexistent/w.pt: no such file",
+        ),
+        (&["--levels", "6"][..], "--levels 6"),
+        (&["--width", "2"][..], "--width 2"),
+    ] {
+        let (code, stderr) = train_py_refusal(options);
+        assert_eq!(code, Some(2), "{options:?}: {stderr}");
+        assert!(stderr.contains(names), "{options:?}: {stderr}");
+    }
 }
 
 #[test]
