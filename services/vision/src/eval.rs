@@ -197,7 +197,7 @@ pub fn evaluate_classical(classical: &ClassicalLocalizer, split: &Split) -> Repo
 /// The accuracy columns of a table row: precision, recall, IoU, detection rates, keypoint errors.
 fn accuracy_cells(r: &Report) -> String {
     format!(
-        "{:.2} % | {:.2} % | {:.2} % | {:.1} % | {:.1} % | {:.1} / {:.1} / {:.1} % | {:.3} / {:.3} | {:.3} / {:.3}",
+        "{:.2} % | {:.2} % | {:.2} % | {:.1} % | {:.1} % | {:.1} / {:.1} / {:.1} % | {} | {}",
         100.0 * r.precision,
         100.0 * r.recall,
         100.0 * r.iou,
@@ -206,11 +206,19 @@ fn accuracy_cells(r: &Report) -> String {
         100.0 * r.rejected_not_found,
         100.0 * r.rejected_area,
         100.0 * r.rejected_spacing,
-        r.centroid_err_mm_median,
-        r.centroid_err_mm_p95,
-        r.tip_err_mm_median,
-        r.tip_err_mm_p95,
+        pair_cell(r.centroid_err_mm_median, r.centroid_err_mm_p95, 3),
+        pair_cell(r.tip_err_mm_median, r.tip_err_mm_p95, 3),
     )
+}
+
+/// "median / p95" of a quantity, or "–" when nothing was measured (no pose found to measure a
+/// keypoint error on).
+fn pair_cell(median: f64, tail: f64, decimals: usize) -> String {
+    if median.is_finite() && tail.is_finite() {
+        format!("{median:.decimals$} / {tail:.decimals$}")
+    } else {
+        "–".to_string()
+    }
 }
 
 /// A Markdown table of reports side by side.
@@ -220,12 +228,11 @@ pub fn table(reports: &[Report]) -> String {
     );
     for r in reports {
         out.push_str(&format!(
-            "| {} | {} | {} | {:.2} / {:.2} |\n",
+            "| {} | {} | {} | {} |\n",
             r.name,
             r.samples,
             accuracy_cells(r),
-            r.latency_ms_median,
-            r.latency_ms_p99
+            pair_cell(r.latency_ms_median, r.latency_ms_p99, 2)
         ));
     }
     out
@@ -299,4 +306,20 @@ pub fn robustness_table(rows: &[RobustnessRow]) -> String {
         ));
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keypoint_errors_read_as_a_dash_when_nothing_was_found() {
+        // No pose found: the tallies of keypoint errors are empty.
+        let report = Tally::default().report("unet", 3);
+        let row = table(&[report]);
+        assert!(!row.contains("NaN"), "{row}");
+        assert!(row.contains("| – | – | – |"), "{row}");
+        assert_eq!(pair_cell(0.0123, 0.0456, 3), "0.012 / 0.046");
+        assert_eq!(pair_cell(6.2, 6.69, 2), "6.20 / 6.69");
+    }
 }
