@@ -3,11 +3,14 @@
 //! the bound holds the coils back on the pump stroke's rise, and the loop counts that
 //! shortfall in its disturbance estimate so that the robot is not left off its path. Without
 //! that the bound cost 2.5x the RMSE here (0.64 against 0.26 mm); the test allows 1.6x.
+//! Where the stroke outruns the bound, a bound that yields to 4x its rate when it would withhold
+//! more than 20 % of the asked force (`[control.slew_yield]`) keeps the RMSE of the unbounded
+//! loop (1.01x measured; the test allows 1.1x) with the p95 step still within the bound.
 
 use millinav_experiments::{fast_run, set_in_table, Cell, FlowSetting, Metrics};
 use millinav_tests::PaperCell;
 
-fn run(max_step_fraction: Option<f64>) -> (Metrics, f64) {
+fn run(max_step_fraction: Option<f64>, yield_fraction: Option<f64>) -> (Metrics, f64) {
     let cell = Cell {
         viscosity_cp: 20.0,
         flow: FlowSetting::Q250,
@@ -25,11 +28,25 @@ fn run(max_step_fraction: Option<f64>) -> (Metrics, f64) {
                 rate_a_per_s.into(),
             )
             .expect("[control]");
+            if let Some(shortfall) = yield_fraction {
+                set_in_table(
+                    &mut base.sections,
+                    &["control", "slew_yield", "shortfall_fraction"],
+                    shortfall.into(),
+                )
+                .expect("[control]");
+                set_in_table(
+                    &mut base.sections,
+                    &["control", "slew_yield", "max_current_slew_a_per_s"],
+                    (4.0 * rate_a_per_s).into(),
+                )
+                .expect("[control]");
+            }
         }
     });
     let m = paper.metrics(&fast_run(&paper.scenario).expect("fast run"));
     println!(
-        "bound {max_step_fraction:?} of {limit_a} A per frame: RMSE {:.3} mm, completed {}, \
+        "bound {max_step_fraction:?} of {limit_a} A per frame, yield {yield_fraction:?}: RMSE {:.3} mm, completed {}, \
          p95 coil step {:.3} A",
         m.rmse_mm, m.completed, m.current_step_p95_a
     );
@@ -38,8 +55,8 @@ fn run(max_step_fraction: Option<f64>) -> (Metrics, f64) {
 
 #[test]
 fn under_a_slew_bound_the_scheduled_dob_keeps_to_its_path_in_pulsatile_flow() {
-    let (free, _) = run(None);
-    let (bounded, limit_a) = run(Some(0.1));
+    let (free, _) = run(None, None);
+    let (bounded, limit_a) = run(Some(0.1), None);
     assert!(free.completed && bounded.completed);
     assert!(
         bounded.current_step_p95_a <= 0.1 * limit_a + 1e-3,
@@ -55,6 +72,24 @@ fn under_a_slew_bound_the_scheduled_dob_keeps_to_its_path_in_pulsatile_flow() {
         bounded.rmse_mm <= 1.6 * free.rmse_mm,
         "bounded RMSE {:.3} mm against {:.3} mm unbounded",
         bounded.rmse_mm,
+        free.rmse_mm
+    );
+}
+
+#[test]
+fn a_bound_that_yields_where_the_stroke_outruns_it_keeps_the_unbounded_rmse() {
+    let (free, _) = run(None, None);
+    let (yielding, limit_a) = run(Some(0.1), Some(0.2));
+    assert!(free.completed && yielding.completed);
+    assert!(
+        yielding.current_step_p95_a <= 0.1 * limit_a + 1e-3,
+        "p95 coil step {:.3} A above 10 % of the {limit_a} A limit",
+        yielding.current_step_p95_a
+    );
+    assert!(
+        yielding.rmse_mm <= 1.1 * free.rmse_mm,
+        "RMSE with the yielding bound {:.3} mm against {:.3} mm unbounded",
+        yielding.rmse_mm,
         free.rmse_mm
     );
 }

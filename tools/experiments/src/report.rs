@@ -582,11 +582,27 @@ pub fn table_header(mode: &str, base: &Scenario) -> anyhow::Result<String> {
         Some("observer") => ", velocity from the model-based observer",
         _ => "",
     };
-    let slew = get(&["control", "max_current_slew_a_per_s"])
-        .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
-        .map_or(String::new(), |rate| {
-            format!(", coil currents slew-limited to {rate} A/s")
+    let number = |path: &[&str]| {
+        get(path).and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+    };
+    let slew = number(&["control", "max_current_slew_a_per_s"]).map_or(String::new(), |rate| {
+        // The yield's own defaults where the table names only one of its fields.
+        let yielding = get(&["control", "slew_yield"]).map(|_| {
+            let defaults = millinav_control::SlewYieldConfig::default();
+            let fraction = number(&["control", "slew_yield", "shortfall_fraction"])
+                .unwrap_or(defaults.shortfall_fraction);
+            let faster = number(&["control", "slew_yield", "max_current_slew_a_per_s"])
+                .unwrap_or(defaults.max_current_slew_a_per_s);
+            format!(
+                " ({faster} A/s where that would withhold more than {:.0} % of the force)",
+                fraction * 100.0
+            )
         });
+        format!(
+            ", coil currents slew-limited to {rate} A/s{}",
+            yielding.unwrap_or_default()
+        )
+    });
     let rig = base.rig()?;
     Ok(format!(
         "{mode}, {} ms frame period, {} ms extra camera latency{command_delay} ({}), per-coil gain \
