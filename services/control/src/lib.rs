@@ -137,6 +137,8 @@ pub struct ControlConfig {
 /// for faster currents it holds the coils back until the robot leaves its path (issue 21 point
 /// 7: at 20 cP 10 cm/s the stroke outruns a 60 A/s bound in 15–25 % of the frames where the jet
 /// is strongest). Those frames are few, so yielding there keeps the p95 step within the bound.
+/// Not for a loop that chatters (PID, the paper-gain SMCs): their chatter is a command the bound
+/// withholds, and with the yield it comes back (README, "Coil effort").
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct SlewYieldConfig {
