@@ -52,6 +52,11 @@ pub struct LatencyConfig {
     /// learned by recursive least squares), so that a pulsatile push is predicted across the
     /// delay instead of being seen late. None: a steady estimate only.
     pub pulsation_hz: Option<f64>,
+    /// Fewest poses per pulsation period for the fitted pulsation to lead a controller's
+    /// disturbance estimate (`StatePredictor::lead_disturbance`): fewer, and the lead is off.
+    /// At the paper's 10 Hz and 3 Hz there are 3.3 (README, "The predicted disturbance leads
+    /// the DOB": off there by default).
+    pub lead_min_poses_per_period: f64,
 }
 
 impl Default for LatencyConfig {
@@ -63,6 +68,7 @@ impl Default for LatencyConfig {
             disturbance_delays: 4.0,
             disturbance_time_constant_ms: 100.0,
             pulsation_hz: None,
+            lead_min_poses_per_period: 10.0,
         }
     }
 }
@@ -70,13 +76,18 @@ impl Default for LatencyConfig {
 impl LatencyConfig {
     /// The first field that is out of range, with why.
     pub fn invalid_field(&self) -> Option<(&'static str, String)> {
-        let checks: [(&'static str, f64, bool); 4] = [
+        let checks: [(&'static str, f64, bool); 5] = [
             ("unstamped_delay_ms", self.unstamped_delay_ms, false),
             ("max_pose_age_ms", self.max_pose_age_ms, true),
             ("disturbance_delays", self.disturbance_delays, false),
             (
                 "disturbance_time_constant_ms",
                 self.disturbance_time_constant_ms,
+                false,
+            ),
+            (
+                "lead_min_poses_per_period",
+                self.lead_min_poses_per_period,
                 false,
             ),
         ];
@@ -170,10 +181,6 @@ impl PulsationFit {
         ))
     }
 }
-
-/// Fewest poses per pulsation period for the fitted pulsation to lead a controller's
-/// disturbance estimate (`StatePredictor::lead_disturbance`).
-pub const LEAD_MIN_POSES_PER_PERIOD: f64 = 10.0;
 
 /// Weight of each new interval in the averaged pose interval (one odd gap does not switch the
 /// lead off).
@@ -314,16 +321,16 @@ impl StatePredictor {
     /// The disturbance the model expects, on average, over the `span_s` from `from_ns` on (a
     /// command's hold, about one pose interval): the steady estimate of the last pose plus the
     /// fitted pulsation's mean. None before the second pose, and when the poses come too
-    /// seldom to resolve the pulsation (fewer than [`LEAD_MIN_POSES_PER_PERIOD`] per period:
-    /// at the paper's 10 Hz and 3 Hz, 3.3, and a fit from so few poses leads a controller
-    /// astray).
+    /// seldom to resolve the pulsation (fewer than `lead_min_poses_per_period` per period:
+    /// at the paper's 10 Hz and 3 Hz, 3.3, where without extra latency a fit from so few poses
+    /// leads a controller astray).
     pub fn lead_disturbance(&self, from_ns: u64, span_s: f64) -> Option<Vector2<f64>> {
         let (model, _) = self.last.as_ref()?;
         let span_s = span_s.max(0.0);
         let pulsation = match &self.pulsation {
             Some(fit) => {
                 let period_s = std::f64::consts::TAU / fit.omega_rad_s;
-                if self.pose_interval_s? * LEAD_MIN_POSES_PER_PERIOD > period_s {
+                if self.pose_interval_s? * self.config.lead_min_poses_per_period > period_s {
                     return None;
                 }
                 fit.mean_force(from_ns as f64 * 1e-9, span_s)
@@ -719,6 +726,14 @@ mod tests {
             ..LatencyConfig::default()
         };
         assert_eq!(config.invalid_field().unwrap().0, "max_pose_age_ms");
+        let config = LatencyConfig {
+            lead_min_poses_per_period: f64::NAN,
+            ..LatencyConfig::default()
+        };
+        assert_eq!(
+            config.invalid_field().unwrap().0,
+            "lead_min_poses_per_period"
+        );
         assert!(LatencyConfig::default().invalid_field().is_none());
     }
 }
