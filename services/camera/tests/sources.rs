@@ -15,11 +15,27 @@ use opencv::prelude::*;
 use opencv::{imgcodecs, videoio};
 use shm_schemas::FrameStamp;
 
-fn temp_dir(name: &str) -> PathBuf {
+/// A fresh directory of this test process, removed when the test ends (passed or failed).
+struct TempDir(PathBuf);
+
+impl std::ops::Deref for TempDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn temp_dir(name: &str) -> TempDir {
     let dir = std::env::temp_dir().join(format!("millinav-camera-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    dir
+    TempDir(dir)
 }
 
 /// A deterministic, textured 3-channel test image.

@@ -1521,11 +1521,11 @@ mod tests {
         assert_ne!(mode(&d), ControlMode::Track);
     }
 
-    /// A scenario file in a directory of its own, with `control_table` as its `[control]`.
+    /// A scenario as if read from a file of its own (parsed from text: nothing is written), with
+    /// `control_table` as its `[control]`.
     fn scenario_with(name: &str, control_table: &str) -> Scenario {
         let dir =
             std::env::temp_dir().join(format!("millinav-control-{}-{name}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
         let text = format!(
             "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
              [trajectory]\nwaypoints_mm = [[-18.0, 12.0], [-12.0, 8.0]]\n\
