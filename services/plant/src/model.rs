@@ -148,6 +148,17 @@ pub struct PlantModel {
     apparent_weight_n: f64,
 }
 
+/// [`PlantModel::flow_noise_response`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlowNoiseResponse {
+    pub moving_mass_kg: f64,
+    pub linear_drag_n_s_per_m: f64,
+    pub flow_coupling_n_s_per_m: f64,
+    /// RMS of the noise velocity's magnitude (both axes together), m/s.
+    pub noise_rms_speed_mps: f64,
+    pub correlation_time_s: f64,
+}
+
 impl PlantModel {
     pub fn new(
         coils: impl CoilField + Send + Sync + 'static,
@@ -208,6 +219,19 @@ impl PlantModel {
 
     pub fn linear_drag(&self) -> f64 {
         self.linear_drag_n_s_per_m
+    }
+
+    /// How the flow noise moves the capsule, linearised: the moving mass, the drag on its own
+    /// motion and the coupling to the flow (N·s/m), the noise's RMS speed and its correlation
+    /// time (what `experiments --noise-floor` bounds the tracking error with).
+    pub fn flow_noise_response(&self) -> FlowNoiseResponse {
+        FlowNoiseResponse {
+            moving_mass_kg: self.robot.mass_kg + self.robot.added_mass_kg,
+            linear_drag_n_s_per_m: self.linear_drag_n_s_per_m,
+            flow_coupling_n_s_per_m: self.flow_coupling_n_s_per_m,
+            noise_rms_speed_mps: self.disturbance.noise_rms_speed_mps(),
+            correlation_time_s: self.disturbance.noise_correlation_time_s(),
+        }
     }
 
     pub fn initial_state(&self, position_m: Vector2<f64>, heading_rad: f64) -> PlantState {

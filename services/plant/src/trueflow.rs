@@ -177,6 +177,16 @@ impl FlowDisturbance {
         }
     }
 
+    /// RMS of the noise velocity's magnitude, m/s (0: no noise).
+    pub fn noise_rms_speed_mps(&self) -> f64 {
+        self.noise_speed_mps
+    }
+
+    /// Correlation time of the noise modes, s.
+    pub fn noise_correlation_time_s(&self) -> f64 {
+        self.correlation_time_s
+    }
+
     /// Noise state at t = 0, drawn from the stationary distribution.
     pub fn initial_noise(&self, seed: u64) -> FlowNoiseState {
         let mut rng = rng_streams::run_rng(seed, rng_streams::FLOW_NOISE);

@@ -7,6 +7,7 @@
 //! - `process`: the real process set in lockstep through `millinav run`, metrics from truth.csv.
 
 pub mod campaign;
+pub mod noise_floor;
 pub mod report;
 pub mod robustness;
 pub mod runner;

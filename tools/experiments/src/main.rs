@@ -12,7 +12,7 @@ use millinav_experiments::campaign::{
 };
 use millinav_experiments::runner::{self, TaskCells, TaskEnd};
 use millinav_experiments::slurm::{self, SlurmSettings};
-use millinav_experiments::{report, rig_matrix, robustness, set_in_table};
+use millinav_experiments::{noise_floor, report, rig_matrix, robustness, set_in_table};
 use millinav_kit::scenario::Scenario;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -156,6 +156,12 @@ struct MatrixArgs {
     /// robustness.png.
     #[arg(long)]
     robustness: bool,
+    /// Run nothing: print, for every condition of the selected cells, the tracking error (RMS,
+    /// mm) that no controller can beat in the twin's flow noise with these poses (frame period,
+    /// camera latency, command delay, fast mode's pose noise): the Kalman predictor's error
+    /// when the coils act (README, "The flow noise's floor").
+    #[arg(long, conflicts_with = "robustness")]
+    noise_floor: bool,
     /// Worker threads (local backend, fast mode; process mode runs one cell at a time).
     #[arg(long, default_value_t = 2)]
     threads: usize,
@@ -287,9 +293,37 @@ fn main() -> ExitCode {
     }
 }
 
+/// `--noise-floor`'s table.
+fn print_noise_floors(rows: &[noise_floor::FloorRow]) {
+    println!("| condition | loop | pose age when the coils act (ms) | noise RMS (mm/s) | floor RMSE (mm) | paper SMC-DOB (mm) |");
+    println!("|---|---|---|---|---|---|");
+    for row in rows {
+        let s = &row.sampling;
+        let youngest_ms = (s.latency_frames as f64 * s.frame_period_s + s.command_delay_s) * 1e3;
+        let paper = report::paper_smc_dob_rmse_mm(row.viscosity_cp, row.flow)
+            .map_or("–".to_string(), |v| format!("{v:.2}"));
+        println!(
+            "| {} cP, {} | {:.0} Hz | {:.0}–{:.0} | {:.1} | {:.3} | {} |",
+            row.viscosity_cp,
+            row.flow.label(),
+            1.0 / s.frame_period_s,
+            youngest_ms,
+            youngest_ms + s.frame_period_s * 1e3,
+            row.noise_rms_speed_mps * 1e3,
+            row.floor_m * 1e3,
+            paper
+        );
+    }
+}
+
 /// Plans the matrix into --out, runs it on the chosen backend, and collects it.
 fn run_matrix(args: &MatrixArgs) -> anyhow::Result<ExitCode> {
     let base = load_base(args)?;
+    if args.noise_floor {
+        let cells = selected_cells(args, &*base.rig()?)?;
+        print_noise_floors(&noise_floor::condition_floors(&base, &cells)?);
+        return Ok(ExitCode::SUCCESS);
+    }
     anyhow::ensure!(
         !args.reuse_runs || args.mode == Mode::Process,
         "--reuse-runs reads earlier process-mode runs: use it with --mode process"

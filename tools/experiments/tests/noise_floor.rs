@@ -1,0 +1,60 @@
+//! `experiments --noise-floor` prints one row per condition, from the twin each cell would run.
+
+use std::process::Command;
+
+/// The floor column of `experiments --noise-floor ARGS`, by condition.
+fn floors(args: &[&str]) -> Vec<(String, f64)> {
+    let output = Command::new(env!("CARGO_BIN_EXE_experiments"))
+        .current_dir(fieldmaps::data_root())
+        .args(["--noise-floor", "--base", "scenarios/paper.toml"])
+        .args(args)
+        .output()
+        .expect("experiments runs");
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8(output.stdout)
+        .unwrap()
+        .lines()
+        .skip(2)
+        .map(|line| {
+            let cells: Vec<&str> = line.split('|').map(str::trim).collect();
+            (
+                cells[1].to_string(),
+                cells[5].parse().expect("a floor in mm"),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn the_flow_noise_floor_is_zero_in_still_fluid_and_grows_with_the_poses_age() {
+    let now = floors(&["--frame-period-ms", "100"]);
+    let late = floors(&["--frame-period-ms", "100", "--camera-latency-ms", "100"]);
+    assert_eq!(now.len(), 6, "{now:?}");
+    for ((condition, floor), (_, later)) in now.iter().zip(&late) {
+        if condition.ends_with("static") {
+            assert_eq!(*floor, 0.0, "{condition}");
+            assert_eq!(*later, 0.0, "{condition}");
+        } else {
+            assert!(
+                *floor > 0.0 && *later > 2.0 * floor,
+                "{condition}: {floor} → {later}"
+            );
+        }
+    }
+    // Noise twice as strong (and nothing else changed) raises every flow cell's floor.
+    let louder = floors(&[
+        "--frame-period-ms",
+        "100",
+        "--set",
+        "plant.physics.flow_noise.fraction=0.2",
+    ]);
+    for ((condition, floor), (_, loud)) in now.iter().zip(&louder) {
+        if !condition.ends_with("static") {
+            assert!(*loud > 1.2 * floor, "{condition}: {floor} → {loud}");
+        }
+    }
+}
