@@ -159,7 +159,8 @@ struct MatrixArgs {
     /// Run nothing: print, for every condition of the selected cells, the tracking error (RMS,
     /// mm) that no controller can beat in the twin's flow noise with these poses (frame period,
     /// camera latency, command delay, fast mode's pose noise): the Kalman predictor's error
-    /// when the coils act (README, "The flow noise's floor").
+    /// when the coils act, for the capsule with its linear drag and for a body that follows the
+    /// flow at once (README, "The flow noise's floor").
     #[arg(long, conflicts_with = "robustness")]
     noise_floor: bool,
     /// Worker threads (local backend, fast mode; process mode runs one cell at a time).
@@ -295,15 +296,18 @@ fn main() -> ExitCode {
 
 /// `--noise-floor`'s table.
 fn print_noise_floors(rows: &[noise_floor::FloorRow]) {
-    println!("| condition | loop | pose age when the coils act (ms) | noise RMS (mm/s) | floor RMSE (mm) | paper SMC-DOB (mm) |");
-    println!("|---|---|---|---|---|---|");
+    println!(
+        "| condition | loop | pose age when the coils act (ms) | noise RMS (mm/s) | floor RMSE (mm) \
+         | floor, following the flow (mm) | paper SMC-DOB (mm) |"
+    );
+    println!("|---|---|---|---|---|---|---|");
     for row in rows {
         let s = &row.sampling;
         let youngest_ms = (s.latency_frames as f64 * s.frame_period_s + s.command_delay_s) * 1e3;
         let paper = report::paper_smc_dob_rmse_mm(row.viscosity_cp, row.flow)
             .map_or("–".to_string(), |v| format!("{v:.2}"));
         println!(
-            "| {} cP, {} | {:.0} Hz | {:.0}–{:.0} | {:.1} | {:.3} | {} |",
+            "| {} cP, {} | {:.0} Hz | {:.0}–{:.0} | {:.1} | {:.3} | {:.3} | {} |",
             row.viscosity_cp,
             row.flow.label(),
             1.0 / s.frame_period_s,
@@ -311,6 +315,7 @@ fn print_noise_floors(rows: &[noise_floor::FloorRow]) {
             youngest_ms + s.frame_period_s * 1e3,
             row.noise_rms_speed_mps * 1e3,
             row.floor_m * 1e3,
+            row.fluid_particle_floor_m * 1e3,
             paper
         );
     }

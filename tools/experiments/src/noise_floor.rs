@@ -39,6 +39,8 @@ pub struct Sampling {
     pub pose_noise_m: f64,
 }
 
+/// The fluid particle's velocity time constant as a fraction of the noise's correlation time.
+const FLUID_PARTICLE_LAG_FRACTION: f64 = 1e-3;
 /// Points over the frame at which the carried covariance is averaged.
 const FRAME_POINTS: usize = 20;
 /// Kalman iterations towards the steady covariance (converges within a few correlation times).
@@ -64,17 +66,30 @@ impl NoisyCapsule {
         (a, q)
     }
 
-    /// Transition and process-noise covariance over `h` seconds (Van Loan's method).
+    /// Transition and process-noise covariance over `h` seconds: Van Loan's method over a
+    /// step short enough for it to stay well conditioned (a fluid particle's drag is stiff),
+    /// then doubled back up to `h` (Φ(2s) = Φ(s)², Q(2s) = Q(s) + Φ(s) Q(s) Φ(s)ᵀ).
     fn discretised(&self, h: f64) -> (Matrix3<f64>, Matrix3<f64>) {
         let (a, q) = self.dynamics();
+        let stiffness = a.abs().max() * h;
+        let doublings = if stiffness > 0.5 {
+            ((stiffness / 0.5).log2().ceil() as i32).min(60)
+        } else {
+            0
+        };
+        let step = h / 2f64.powi(doublings);
         let mut m = Matrix6::zeros();
-        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-a * h));
-        m.fixed_view_mut::<3, 3>(0, 3).copy_from(&(q * h));
+        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-a * step));
+        m.fixed_view_mut::<3, 3>(0, 3).copy_from(&(q * step));
         m.fixed_view_mut::<3, 3>(3, 3)
-            .copy_from(&(a.transpose() * h));
+            .copy_from(&(a.transpose() * step));
         let e = m.exp();
-        let phi: Matrix3<f64> = e.fixed_view::<3, 3>(3, 3).transpose();
-        let qd = phi * e.fixed_view::<3, 3>(0, 3);
+        let mut phi: Matrix3<f64> = e.fixed_view::<3, 3>(3, 3).transpose();
+        let mut qd = phi * e.fixed_view::<3, 3>(0, 3);
+        for _ in 0..doublings {
+            qd += phi * qd * phi.transpose();
+            phi *= phi;
+        }
         (phi, (qd + qd.transpose()) * 0.5)
     }
 
@@ -106,6 +121,19 @@ impl NoisyCapsule {
         }
         let (phi, qd) = self.discretised(age_s);
         (phi * filtered * phi.transpose() + qd)[(0, 0)]
+    }
+
+    /// A body that follows the flow at once (its drag's slope far above its mass over the
+    /// noise's correlation time): the limit the capsule approaches where the form drag's slope
+    /// c + 2k|u| grows with the flow it sits in.
+    pub fn fluid_particle(&self) -> Self {
+        let drag = self.linear_drag_n_s_per_m.max(self.flow_coupling_n_s_per_m);
+        Self {
+            moving_mass_kg: drag * self.correlation_time_s * FLUID_PARTICLE_LAG_FRACTION,
+            linear_drag_n_s_per_m: drag,
+            flow_coupling_n_s_per_m: drag,
+            ..*self
+        }
     }
 
     /// The RMS tracking error (both axes, m) that no controller beats in this noise (module
@@ -147,6 +175,8 @@ pub struct FloorRow {
     pub noise_rms_speed_mps: f64,
     pub sampling: Sampling,
     pub floor_m: f64,
+    /// The same for a body that follows the flow at once ([`NoisyCapsule::fluid_particle`]).
+    pub fluid_particle_floor_m: f64,
 }
 
 /// The floor of every condition (viscosity × flow) among `cells`, each from its own cell
@@ -187,6 +217,7 @@ pub fn condition_floors(
             flow: cell.flow,
             noise_rms_speed_mps: response.noise_rms_speed_mps,
             floor_m: capsule.rmse_floor_m(&sampling),
+            fluid_particle_floor_m: capsule.fluid_particle().rmse_floor_m(&sampling),
             sampling,
         });
     }
@@ -230,6 +261,35 @@ mod tests {
             .map(|l| capsule().rmse_floor_m(&sampling(0.1, l)))
             .collect();
         assert!(floors.windows(2).all(|w| w[0] < w[1]), "{floors:?}");
+        // A body that follows the flow at once is moved further by it, and as far as a fluid
+        // particle whose velocity is an Ornstein–Uhlenbeck process: with poses that tell its
+        // velocity nearly exactly, the displacement over a horizon T it cannot know has the
+        // variance σ²τ²(2T/τ − 3 + 4e^(−T/τ) − e^(−2T/τ)) per axis.
+        let particle = capsule().fluid_particle();
+        let fine = Sampling {
+            frame_period_s: 1e-3,
+            latency_frames: 100,
+            command_delay_s: 0.0,
+            pose_noise_m: 1e-9,
+        };
+        let (sigma, tau) = (capsule().noise_rms_speed_mps / 2f64.sqrt(), 0.3);
+        let horizons =
+            (0..FRAME_POINTS).map(|j| 0.1 + (j as f64 + 0.5) / FRAME_POINTS as f64 * 1e-3);
+        let exact = (horizons
+            .map(|t| {
+                let x = t / tau;
+                sigma.powi(2) * tau.powi(2) * (2.0 * x - 3.0 + 4.0 * (-x).exp() - (-2.0 * x).exp())
+            })
+            .sum::<f64>()
+            * 2.0
+            / FRAME_POINTS as f64)
+            .sqrt();
+        let floor = particle.rmse_floor_m(&fine);
+        assert!(
+            (floor / exact - 1.0).abs() < 0.02,
+            "{floor:.4e} vs {exact:.4e} m"
+        );
+        assert!(particle.rmse_floor_m(&sampling(0.1, 1)) > floors[1]);
         // Twice the flow noise and twice the pose noise, twice the floor (the model is linear);
         // twice the flow noise alone, a little less (the poses then tell more of it).
         let louder = NoisyCapsule {
