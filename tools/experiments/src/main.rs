@@ -294,8 +294,8 @@ fn main() -> ExitCode {
     }
 }
 
-/// `--noise-floor`'s table.
-fn print_noise_floors(rows: &[noise_floor::FloorRow]) {
+/// `--noise-floor`'s table (the paper's numbers only on the paper's rig).
+fn print_noise_floors(rows: &[noise_floor::FloorRow], on_paper_rig: bool) {
     println!(
         "| condition | loop | pose age when the coils act (ms) | noise RMS (mm/s) | floor RMSE (mm) \
          | floor, following the flow (mm) | paper SMC-DOB (mm) |"
@@ -305,6 +305,7 @@ fn print_noise_floors(rows: &[noise_floor::FloorRow]) {
         let s = &row.sampling;
         let youngest_ms = (s.latency_frames as f64 * s.frame_period_s + s.command_delay_s) * 1e3;
         let paper = report::paper_smc_dob_rmse_mm(row.viscosity_cp, row.flow)
+            .filter(|_| on_paper_rig)
             .map_or("–".to_string(), |v| format!("{v:.2}"));
         println!(
             "| {} cP, {} | {:.0} Hz | {:.0}–{:.0} | {:.1} | {:.3} | {:.3} | {} |",
@@ -325,8 +326,10 @@ fn print_noise_floors(rows: &[noise_floor::FloorRow]) {
 fn run_matrix(args: &MatrixArgs) -> anyhow::Result<ExitCode> {
     let base = load_base(args)?;
     if args.noise_floor {
-        let cells = selected_cells(args, &*base.rig()?)?;
-        print_noise_floors(&noise_floor::condition_floors(&base, &cells)?);
+        let rig = base.rig()?;
+        let cells = selected_cells(args, &rig)?;
+        let on_paper_rig = rig.path == fieldmaps::rigfile::paper_rig_path();
+        print_noise_floors(&noise_floor::condition_floors(&base, &cells)?, on_paper_rig);
         return Ok(ExitCode::SUCCESS);
     }
     anyhow::ensure!(

@@ -2,11 +2,11 @@
 
 use std::process::Command;
 
-/// The floor column of `experiments --noise-floor ARGS`, by condition.
-fn floors(args: &[&str]) -> Vec<(String, f64)> {
+/// The rows of `experiments --noise-floor --base BASE ARGS`, split into their columns.
+fn table(base: &str, args: &[&str]) -> Vec<Vec<String>> {
     let output = Command::new(env!("CARGO_BIN_EXE_experiments"))
         .current_dir(fieldmaps::data_root())
-        .args(["--noise-floor", "--base", "scenarios/paper.toml"])
+        .args(["--noise-floor", "--base", base])
         .args(args)
         .output()
         .expect("experiments runs");
@@ -19,14 +19,31 @@ fn floors(args: &[&str]) -> Vec<(String, f64)> {
         .unwrap()
         .lines()
         .skip(2)
-        .map(|line| {
-            let cells: Vec<&str> = line.split('|').map(str::trim).collect();
-            (
-                cells[1].to_string(),
-                cells[5].parse().expect("a floor in mm"),
-            )
-        })
+        .map(|line| line.split('|').map(|c| c.trim().to_string()).collect())
         .collect()
+}
+
+/// The floor column on the paper's rig, by condition.
+fn floors(args: &[&str]) -> Vec<(String, f64)> {
+    table("scenarios/paper.toml", args)
+        .into_iter()
+        .map(|cells| (cells[1].clone(), cells[5].parse().expect("a floor in mm")))
+        .collect()
+}
+
+#[test]
+fn another_rig_gets_its_own_conditions_and_no_paper_numbers() {
+    let rows = table("scenarios/vessel8.toml", &[]);
+    assert!(
+        rows.iter().any(|r| r[1].contains("mL/min")),
+        "vessel8's flow conditions: {rows:?}"
+    );
+    for row in &rows {
+        assert_eq!(row[7], "–", "{row:?}");
+        let floor: f64 = row[5].parse().unwrap();
+        let following: f64 = row[6].parse().unwrap();
+        assert!(following >= floor, "{row:?}");
+    }
 }
 
 #[test]
