@@ -1005,7 +1005,15 @@ impl Campaign {
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
         let on_paper_rig = self.manifest.on_paper_rig;
-        let table = robustness::write_tables(&outcomes, on_paper_rig, &self.out)?;
+        // The flow noise's floor of each setting's twin, from its cell's scenario.
+        let floor_m = |case: &robustness::Case| {
+            let path = self.scenario_path(&case.name());
+            let text = std::fs::read_to_string(&path).ok()?;
+            let scenario = Scenario::parse(&text, &path).ok()?;
+            let floor = crate::noise_floor::scenario_floor(&scenario).ok()?;
+            Some((floor.floor_m, floor.fluid_particle_floor_m))
+        };
+        let table = robustness::write_tables(&outcomes, on_paper_rig, &floor_m, &self.out)?;
         if report::register_font() {
             robustness::heat_map(&outcomes, on_paper_rig, &self.out.join("robustness.png"))?;
         } else {

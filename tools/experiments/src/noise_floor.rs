@@ -179,9 +179,47 @@ pub struct FloorRow {
     pub fluid_particle_floor_m: f64,
 }
 
+/// The floors of the twin one scenario runs: its noise, drag, frame period, camera latency and
+/// command delay, and fast mode's pose noise.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScenarioFloor {
+    pub noise_rms_speed_mps: f64,
+    pub sampling: Sampling,
+    pub floor_m: f64,
+    /// The same for a body that follows the flow at once ([`NoisyCapsule::fluid_particle`]).
+    pub fluid_particle_floor_m: f64,
+}
+
+/// [`ScenarioFloor`] of `scenario`.
+pub fn scenario_floor(
+    scenario: &millinav_kit::scenario::Scenario,
+) -> anyhow::Result<ScenarioFloor> {
+    let plant: millinav_plant::PlantConfig = scenario.section("plant")?;
+    let model = millinav_plant::build_model(scenario, &plant)?;
+    let response = model.flow_noise_response();
+    let capsule = NoisyCapsule {
+        moving_mass_kg: response.moving_mass_kg,
+        linear_drag_n_s_per_m: response.linear_drag_n_s_per_m,
+        flow_coupling_n_s_per_m: response.flow_coupling_n_s_per_m,
+        noise_rms_speed_mps: response.noise_rms_speed_mps,
+        correlation_time_s: response.correlation_time_s,
+    };
+    let sampling = Sampling {
+        frame_period_s: scenario.frame_period_s(),
+        latency_frames: plant.camera.latency_frames,
+        command_delay_s: plant.command_delay_ms * 1e-3,
+        pose_noise_m: crate::FAST_POSE_NOISE_M,
+    };
+    Ok(ScenarioFloor {
+        noise_rms_speed_mps: response.noise_rms_speed_mps,
+        sampling,
+        floor_m: capsule.rmse_floor_m(&sampling),
+        fluid_particle_floor_m: capsule.fluid_particle().rmse_floor_m(&sampling),
+    })
+}
+
 /// The floor of every condition (viscosity × flow) among `cells`, each from its own cell
-/// scenario on `base` (the twin it would run: its noise, drag, frame period, camera latency and
-/// command delay) and fast mode's pose noise.
+/// scenario on `base`.
 pub fn condition_floors(
     base: &millinav_kit::scenario::Scenario,
     cells: &[crate::Cell],
@@ -196,29 +234,14 @@ pub fn condition_floors(
         }
         let text = crate::cell_scenario(base, cell)?;
         let scenario = millinav_kit::scenario::Scenario::parse(&text, &base.path)?;
-        let plant: millinav_plant::PlantConfig = scenario.section("plant")?;
-        let model = millinav_plant::build_model(&scenario, &plant)?;
-        let response = model.flow_noise_response();
-        let capsule = NoisyCapsule {
-            moving_mass_kg: response.moving_mass_kg,
-            linear_drag_n_s_per_m: response.linear_drag_n_s_per_m,
-            flow_coupling_n_s_per_m: response.flow_coupling_n_s_per_m,
-            noise_rms_speed_mps: response.noise_rms_speed_mps,
-            correlation_time_s: response.correlation_time_s,
-        };
-        let sampling = Sampling {
-            frame_period_s: scenario.frame_period_s(),
-            latency_frames: plant.camera.latency_frames,
-            command_delay_s: plant.command_delay_ms * 1e-3,
-            pose_noise_m: crate::FAST_POSE_NOISE_M,
-        };
+        let floor = scenario_floor(&scenario)?;
         rows.push(FloorRow {
             viscosity_cp: cell.viscosity_cp,
             flow: cell.flow,
-            noise_rms_speed_mps: response.noise_rms_speed_mps,
-            floor_m: capsule.rmse_floor_m(&sampling),
-            fluid_particle_floor_m: capsule.fluid_particle().rmse_floor_m(&sampling),
-            sampling,
+            noise_rms_speed_mps: floor.noise_rms_speed_mps,
+            sampling: floor.sampling,
+            floor_m: floor.floor_m,
+            fluid_particle_floor_m: floor.fluid_particle_floor_m,
         });
     }
     Ok(rows)

@@ -304,10 +304,18 @@ fn summary(group: &[&CaseOutcome], on_paper_rig: bool) -> (usize, f64, Option<f6
     (done, rmse, ratio)
 }
 
-/// `robustness.csv` (one row per run) and `robustness.md` (one row per setting).
+/// What robustness.md's last column is.
+const FLOOR_NOTE: &str = "Noise floor = the least RMSE any controller could reach in that \
+     twin's flow noise with its poses, for the capsule / for a body that follows the flow at \
+     once (`experiments --noise-floor`; README, \"The flow noise's floor\").";
+
+/// `robustness.csv` (one row per run) and `robustness.md` (one row per setting, with the flow
+/// noise's floor of its twin from `floor_m`: the capsule's and a flow follower's, m, see
+/// `noise_floor`).
 pub fn write_tables(
     outcomes: &[CaseOutcome],
     on_paper_rig: bool,
+    floor_m: &dyn Fn(&Case) -> Option<(f64, f64)>,
     out: &Path,
 ) -> anyhow::Result<String> {
     let mut csv = String::from(
@@ -332,11 +340,11 @@ pub fn write_tables(
     }
     std::fs::write(out.join("robustness.csv"), csv)?;
     let mut md = if on_paper_rig {
-        String::from(
+        format!(
             "One factor at a time around the twin's default (20 cP, 7 cm/s: pulsation 3 Hz at 50 %, \
              flow noise 0.1, recirculation 0.25, coil gain error 0.03, no extra latency), fast mode. \
              Ratio = mean RMSE / the paper's SMC-DOB RMSE of that condition (1.00 mm at 20 cP, \
-             1.60 mm at 4.3 cP, 7 cm/s).\n\n",
+             1.60 mm at 4.3 cP, 7 cm/s). {FLOOR_NOTE}\n\n",
         )
     } else {
         let around = outcomes.iter().find(|o| o.case.axis != Axis::ViscosityCp);
@@ -345,20 +353,24 @@ pub fn write_tables(
         });
         format!(
             "One factor at a time around the base scenario's twin{condition}, fast mode. The \
-             paper ran only its own rig, so there is no ratio to it here.\n\n"
+             paper ran only its own rig, so there is no ratio to it here. {FLOOR_NOTE}\n\n"
         )
     };
     md.push_str(
-        "| axis | level | loop | controller | completed | RMSE mm | ratio to paper |\n\
-         |---|---|---|---|---|---|---|\n",
+        "| axis | level | loop | controller | completed | RMSE mm | ratio to paper | noise floor mm |\n\
+         |---|---|---|---|---|---|---|---|\n",
     );
     for group in grouped(outcomes) {
         let c = &group[0].case;
         let (done, rmse, ratio) = summary(&group, on_paper_rig);
         let ratio = ratio.map_or_else(|| "–".to_string(), |r| format!("{r:.2}"));
+        let floor = floor_m(c).map_or_else(
+            || "–".to_string(),
+            |(capsule, follower)| format!("{:.2} / {:.2}", capsule * 1e3, follower * 1e3),
+        );
         let _ = writeln!(
             md,
-            "| {} | {} | {} Hz | {} | {done}/{} | {rmse:.2} | {ratio} |",
+            "| {} | {} | {} Hz | {} | {done}/{} | {rmse:.2} | {ratio} | {floor} |",
             c.axis.name(),
             c.level,
             1000.0 / c.frame_period_ms,

@@ -42,6 +42,29 @@ fn the_robustness_matrix_reports_every_case() {
         table.contains("| pulsation Hz | 3 | 100 Hz | smc-dob-auto | 1/1 |"),
         "{table}"
     );
+    // Each row's flow noise floor (the capsule's / a flow follower's): older poses and more
+    // noise raise it, and it is the same for every setting the noise does not see.
+    let floor = |axis: &str, level: &str, hz: &str| -> (f64, f64) {
+        let prefix = format!("| {axis} | {level} | {hz} Hz | smc-dob-auto |");
+        let row = table
+            .lines()
+            .find(|l| l.starts_with(&prefix))
+            .unwrap_or_else(|| panic!("no row {prefix} in {table}"));
+        let cell = row.trim_end_matches('|').rsplit('|').next().unwrap().trim();
+        let (capsule, follower) = cell.split_once(" / ").expect("capsule / follower");
+        (capsule.parse().unwrap(), follower.parse().unwrap())
+    };
+    assert!(floor("camera latency ms", "100", "100").0 > floor("camera latency ms", "50", "100").0);
+    assert!(floor("camera latency ms", "50", "100").0 > floor("camera latency ms", "0", "100").0);
+    for hz in ["10", "100"] {
+        let nominal = floor("camera latency ms", "0", hz);
+        assert!(nominal.0 > 0.0 && nominal.1 >= nominal.0, "{nominal:?}");
+        assert!(floor("camera latency ms", "100", hz).0 > nominal.0);
+        assert!(floor("flow noise", "0.2", hz).0 > nominal.0);
+        assert_eq!(floor("pulsation Hz", "1", hz), nominal);
+        assert_eq!(floor("coil gain error", "0.1", hz), nominal);
+    }
+    assert!(floor("camera latency ms", "0", "10").0 > floor("camera latency ms", "0", "100").0);
     if millinav_experiments::report::register_font() {
         let png = std::fs::read(out.join("robustness.png")).expect("robustness.png");
         assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
