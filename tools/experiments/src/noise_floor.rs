@@ -16,16 +16,9 @@
 
 use nalgebra::{Matrix3, Matrix6, Vector3};
 
-/// The linearised capsule in the flow noise (`PlantModel::flow_noise_response`).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct NoisyCapsule {
-    pub moving_mass_kg: f64,
-    pub linear_drag_n_s_per_m: f64,
-    pub flow_coupling_n_s_per_m: f64,
-    /// RMS of the noise velocity's magnitude, both axes together, m/s.
-    pub noise_rms_speed_mps: f64,
-    pub correlation_time_s: f64,
-}
+/// The linearised capsule in the flow noise, as the twin has it
+/// (`PlantModel::flow_noise_response`).
+pub use millinav_plant::model::FlowNoiseResponse as NoisyCapsule;
 
 /// How the loop sees the capsule.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -46,125 +39,125 @@ const FRAME_POINTS: usize = 20;
 /// Kalman iterations towards the steady covariance (converges within a few correlation times).
 const MAX_FILTER_STEPS: usize = 5000;
 
-impl NoisyCapsule {
-    fn dynamics(&self) -> (Matrix3<f64>, Matrix3<f64>) {
-        let m = self.moving_mass_kg;
-        let tau = self.correlation_time_s;
-        let variance = self.noise_rms_speed_mps.powi(2) / 2.0;
-        let a = Matrix3::new(
-            0.0,
-            1.0,
-            0.0,
-            0.0,
-            -self.linear_drag_n_s_per_m / m,
-            self.flow_coupling_n_s_per_m / m,
-            0.0,
-            0.0,
-            -1.0 / tau,
-        );
-        let q = Matrix3::from_diagonal(&Vector3::new(0.0, 0.0, 2.0 * variance / tau));
-        (a, q)
-    }
+/// Per axis: the matrix of the state (x, v, u) and the process noise's intensity.
+fn dynamics(capsule: &NoisyCapsule) -> (Matrix3<f64>, Matrix3<f64>) {
+    let m = capsule.moving_mass_kg;
+    let tau = capsule.correlation_time_s;
+    let variance = capsule.noise_rms_speed_mps.powi(2) / 2.0;
+    let a = Matrix3::new(
+        0.0,
+        1.0,
+        0.0,
+        0.0,
+        -capsule.linear_drag_n_s_per_m / m,
+        capsule.flow_coupling_n_s_per_m / m,
+        0.0,
+        0.0,
+        -1.0 / tau,
+    );
+    let q = Matrix3::from_diagonal(&Vector3::new(0.0, 0.0, 2.0 * variance / tau));
+    (a, q)
+}
 
-    /// Transition and process-noise covariance over `h` seconds: Van Loan's method over a
-    /// step short enough for it to stay well conditioned (a fluid particle's drag is stiff),
-    /// then doubled back up to `h` (Φ(2s) = Φ(s)², Q(2s) = Q(s) + Φ(s) Q(s) Φ(s)ᵀ).
-    fn discretised(&self, h: f64) -> (Matrix3<f64>, Matrix3<f64>) {
-        let (a, q) = self.dynamics();
-        let stiffness = a.abs().max() * h;
-        let doublings = if stiffness > 0.5 {
-            ((stiffness / 0.5).log2().ceil() as i32).min(60)
-        } else {
-            0
-        };
-        let step = h / 2f64.powi(doublings);
-        let mut m = Matrix6::zeros();
-        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-a * step));
-        m.fixed_view_mut::<3, 3>(0, 3).copy_from(&(q * step));
-        m.fixed_view_mut::<3, 3>(3, 3)
-            .copy_from(&(a.transpose() * step));
-        let e = m.exp();
-        let mut phi: Matrix3<f64> = e.fixed_view::<3, 3>(3, 3).transpose();
-        let mut qd = phi * e.fixed_view::<3, 3>(0, 3);
-        for _ in 0..doublings {
-            qd += phi * qd * phi.transpose();
-            phi *= phi;
-        }
-        (phi, (qd + qd.transpose()) * 0.5)
+/// Transition and process-noise covariance over `h` seconds: Van Loan's method over a
+/// step short enough for it to stay well conditioned (a fluid particle's drag is stiff),
+/// then doubled back up to `h` (Φ(2s) = Φ(s)², Q(2s) = Q(s) + Φ(s) Q(s) Φ(s)ᵀ).
+fn discretised(capsule: &NoisyCapsule, h: f64) -> (Matrix3<f64>, Matrix3<f64>) {
+    let (a, q) = dynamics(capsule);
+    let stiffness = a.abs().max() * h;
+    let doublings = if stiffness > 0.5 {
+        ((stiffness / 0.5).log2().ceil() as i32).min(60)
+    } else {
+        0
+    };
+    let step = h / 2f64.powi(doublings);
+    let mut m = Matrix6::zeros();
+    m.fixed_view_mut::<3, 3>(0, 0).copy_from(&(-a * step));
+    m.fixed_view_mut::<3, 3>(0, 3).copy_from(&(q * step));
+    m.fixed_view_mut::<3, 3>(3, 3)
+        .copy_from(&(a.transpose() * step));
+    let e = m.exp();
+    let mut phi: Matrix3<f64> = e.fixed_view::<3, 3>(3, 3).transpose();
+    let mut qd = phi * e.fixed_view::<3, 3>(0, 3);
+    for _ in 0..doublings {
+        qd += phi * qd * phi.transpose();
+        phi *= phi;
     }
+    (phi, (qd + qd.transpose()) * 0.5)
+}
 
-    /// The steady covariance right after a pose.
-    fn filtered_covariance(&self, sampling: &Sampling) -> Matrix3<f64> {
-        let (phi, qd) = self.discretised(sampling.frame_period_s);
-        let r = sampling.pose_noise_m.powi(2);
-        let variance = self.noise_rms_speed_mps.powi(2) / 2.0;
-        let mut p = Matrix3::from_diagonal(&Vector3::new(r, variance, variance));
-        for _ in 0..MAX_FILTER_STEPS {
-            let prior = phi * p * phi.transpose() + qd;
-            let innovation = prior[(0, 0)] + r;
-            let gain = prior.column(0) / innovation.max(f64::MIN_POSITIVE);
-            let next = prior - gain * prior.row(0);
-            let next = (next + next.transpose()) * 0.5;
-            let converged = (next - p).abs().max() <= 1e-12 * next.abs().max();
-            p = next;
-            if converged {
-                break;
-            }
+/// The steady covariance right after a pose.
+fn filtered_covariance(capsule: &NoisyCapsule, sampling: &Sampling) -> Matrix3<f64> {
+    let (phi, qd) = discretised(capsule, sampling.frame_period_s);
+    let r = sampling.pose_noise_m.powi(2);
+    let variance = capsule.noise_rms_speed_mps.powi(2) / 2.0;
+    let mut p = Matrix3::from_diagonal(&Vector3::new(r, variance, variance));
+    for _ in 0..MAX_FILTER_STEPS {
+        let prior = phi * p * phi.transpose() + qd;
+        let innovation = prior[(0, 0)] + r;
+        let gain = prior.column(0) / innovation.max(f64::MIN_POSITIVE);
+        let next = prior - gain * prior.row(0);
+        let next = (next + next.transpose()) * 0.5;
+        let converged = (next - p).abs().max() <= 1e-12 * next.abs().max();
+        p = next;
+        if converged {
+            break;
         }
-        p
     }
+    p
+}
 
-    /// Per-axis variance of the position `age_s` after the last pose the command knows.
-    fn position_variance(&self, filtered: &Matrix3<f64>, age_s: f64) -> f64 {
-        if age_s <= 0.0 {
-            return filtered[(0, 0)];
-        }
-        let (phi, qd) = self.discretised(age_s);
-        (phi * filtered * phi.transpose() + qd)[(0, 0)]
+/// Per-axis variance of the position `age_s` after the last pose the command knows.
+fn position_variance(capsule: &NoisyCapsule, filtered: &Matrix3<f64>, age_s: f64) -> f64 {
+    if age_s <= 0.0 {
+        return filtered[(0, 0)];
     }
+    let (phi, qd) = discretised(capsule, age_s);
+    (phi * filtered * phi.transpose() + qd)[(0, 0)]
+}
 
-    /// A body that follows the flow at once (its drag's slope far above its mass over the
-    /// noise's correlation time): the limit the capsule approaches where the form drag's slope
-    /// c + 2k|u| grows with the flow it sits in.
-    pub fn fluid_particle(&self) -> Self {
-        let drag = self.linear_drag_n_s_per_m.max(self.flow_coupling_n_s_per_m);
-        Self {
-            moving_mass_kg: drag * self.correlation_time_s * FLUID_PARTICLE_LAG_FRACTION,
-            linear_drag_n_s_per_m: drag,
-            flow_coupling_n_s_per_m: drag,
-            ..*self
-        }
+/// A body that follows the flow at once (its drag's slope far above its mass over the
+/// noise's correlation time): the limit the capsule approaches where the form drag's slope
+/// c + 2k|u| grows with the flow it sits in.
+pub fn fluid_particle(capsule: &NoisyCapsule) -> NoisyCapsule {
+    let drag = capsule
+        .linear_drag_n_s_per_m
+        .max(capsule.flow_coupling_n_s_per_m);
+    NoisyCapsule {
+        moving_mass_kg: drag * capsule.correlation_time_s * FLUID_PARTICLE_LAG_FRACTION,
+        linear_drag_n_s_per_m: drag,
+        flow_coupling_n_s_per_m: drag,
+        ..*capsule
     }
+}
 
-    /// The RMS tracking error (both axes, m) that no controller beats in this noise (module
-    /// doc). 0 without noise; NaN for a capsule or sampling that is not physical.
-    pub fn rmse_floor_m(&self, sampling: &Sampling) -> f64 {
-        let physical = self.moving_mass_kg > 0.0
-            && self.linear_drag_n_s_per_m >= 0.0
-            && self.flow_coupling_n_s_per_m >= 0.0
-            && self.correlation_time_s > 0.0
-            && self.noise_rms_speed_mps.is_finite()
-            && sampling.frame_period_s > 0.0
-            && sampling.command_delay_s >= 0.0
-            && sampling.pose_noise_m >= 0.0;
-        if !physical {
-            return f64::NAN;
-        }
-        if self.noise_rms_speed_mps == 0.0 {
-            return 0.0;
-        }
-        let filtered = self.filtered_covariance(sampling);
-        let start =
-            sampling.latency_frames as f64 * sampling.frame_period_s + sampling.command_delay_s;
-        let mean: f64 = (0..FRAME_POINTS)
-            .map(|j| {
-                let age = start + (j as f64 + 0.5) / FRAME_POINTS as f64 * sampling.frame_period_s;
-                self.position_variance(&filtered, age)
-            })
-            .sum::<f64>()
-            / FRAME_POINTS as f64;
-        (2.0 * mean).sqrt()
+/// The RMS tracking error (both axes, m) that no controller beats in this noise (module
+/// doc). 0 without noise; NaN for a capsule or sampling that is not physical.
+pub fn rmse_floor_m(capsule: &NoisyCapsule, sampling: &Sampling) -> f64 {
+    let physical = capsule.moving_mass_kg > 0.0
+        && capsule.linear_drag_n_s_per_m >= 0.0
+        && capsule.flow_coupling_n_s_per_m >= 0.0
+        && capsule.correlation_time_s > 0.0
+        && capsule.noise_rms_speed_mps.is_finite()
+        && sampling.frame_period_s > 0.0
+        && sampling.command_delay_s >= 0.0
+        && sampling.pose_noise_m >= 0.0;
+    if !physical {
+        return f64::NAN;
     }
+    if capsule.noise_rms_speed_mps == 0.0 {
+        return 0.0;
+    }
+    let filtered = filtered_covariance(capsule, sampling);
+    let start = sampling.latency_frames as f64 * sampling.frame_period_s + sampling.command_delay_s;
+    let mean: f64 = (0..FRAME_POINTS)
+        .map(|j| {
+            let age = start + (j as f64 + 0.5) / FRAME_POINTS as f64 * sampling.frame_period_s;
+            position_variance(capsule, &filtered, age)
+        })
+        .sum::<f64>()
+        / FRAME_POINTS as f64;
+    (2.0 * mean).sqrt()
 }
 
 /// One condition's floor (`experiments --noise-floor`).
@@ -196,14 +189,7 @@ pub fn scenario_floor(
 ) -> anyhow::Result<ScenarioFloor> {
     let plant: millinav_plant::PlantConfig = scenario.section("plant")?;
     let model = millinav_plant::build_model(scenario, &plant)?;
-    let response = model.flow_noise_response();
-    let capsule = NoisyCapsule {
-        moving_mass_kg: response.moving_mass_kg,
-        linear_drag_n_s_per_m: response.linear_drag_n_s_per_m,
-        flow_coupling_n_s_per_m: response.flow_coupling_n_s_per_m,
-        noise_rms_speed_mps: response.noise_rms_speed_mps,
-        correlation_time_s: response.correlation_time_s,
-    };
+    let capsule = model.flow_noise_response();
     let sampling = Sampling {
         frame_period_s: scenario.frame_period_s(),
         latency_frames: plant.camera.latency_frames,
@@ -211,10 +197,10 @@ pub fn scenario_floor(
         pose_noise_m: crate::FAST_POSE_NOISE_M,
     };
     Ok(ScenarioFloor {
-        noise_rms_speed_mps: response.noise_rms_speed_mps,
+        noise_rms_speed_mps: capsule.noise_rms_speed_mps,
         sampling,
-        floor_m: capsule.rmse_floor_m(&sampling),
-        fluid_particle_floor_m: capsule.fluid_particle().rmse_floor_m(&sampling),
+        floor_m: rmse_floor_m(&capsule, &sampling),
+        fluid_particle_floor_m: rmse_floor_m(&fluid_particle(&capsule), &sampling),
     })
 }
 
@@ -279,16 +265,16 @@ mod tests {
             noise_rms_speed_mps: 0.0,
             ..capsule()
         };
-        assert_eq!(still.rmse_floor_m(&sampling(0.1, 1)), 0.0);
+        assert_eq!(rmse_floor_m(&still, &sampling(0.1, 1)), 0.0);
         let floors: Vec<f64> = (0..4)
-            .map(|l| capsule().rmse_floor_m(&sampling(0.1, l)))
+            .map(|l| rmse_floor_m(&capsule(), &sampling(0.1, l)))
             .collect();
         assert!(floors.windows(2).all(|w| w[0] < w[1]), "{floors:?}");
         // A body that follows the flow at once is moved further by it, and as far as a fluid
         // particle whose velocity is an Ornstein–Uhlenbeck process: with poses that tell its
         // velocity nearly exactly, the displacement over a horizon T it cannot know has the
         // variance σ²τ²(2T/τ − 3 + 4e^(−T/τ) − e^(−2T/τ)) per axis.
-        let particle = capsule().fluid_particle();
+        let particle = fluid_particle(&capsule());
         let fine = Sampling {
             frame_period_s: 1e-3,
             latency_frames: 100,
@@ -307,12 +293,12 @@ mod tests {
             * 2.0
             / FRAME_POINTS as f64)
             .sqrt();
-        let floor = particle.rmse_floor_m(&fine);
+        let floor = rmse_floor_m(&particle, &fine);
         assert!(
             (floor / exact - 1.0).abs() < 0.02,
             "{floor:.4e} vs {exact:.4e} m"
         );
-        assert!(particle.rmse_floor_m(&sampling(0.1, 1)) > floors[1]);
+        assert!(rmse_floor_m(&particle, &sampling(0.1, 1)) > floors[1]);
         // Twice the flow noise and twice the pose noise, twice the floor (the model is linear);
         // twice the flow noise alone, a little less (the poses then tell more of it).
         let louder = NoisyCapsule {
@@ -323,16 +309,15 @@ mod tests {
             pose_noise_m: 4e-5,
             ..sampling(0.1, 1)
         };
-        let ratio = louder.rmse_floor_m(&noisier_poses) / floors[1];
+        let ratio = rmse_floor_m(&louder, &noisier_poses) / floors[1];
         assert!((ratio - 2.0).abs() < 1e-6, "ratio {ratio}");
-        let ratio = louder.rmse_floor_m(&sampling(0.1, 1)) / floors[1];
+        let ratio = rmse_floor_m(&louder, &sampling(0.1, 1)) / floors[1];
         assert!(ratio > 1.5 && ratio < 2.0, "ratio {ratio}");
-        assert!(capsule()
-            .rmse_floor_m(&Sampling {
-                frame_period_s: 0.0,
-                ..sampling(0.1, 1)
-            })
-            .is_nan());
+        let never = Sampling {
+            frame_period_s: 0.0,
+            ..sampling(0.1, 1)
+        };
+        assert!(rmse_floor_m(&capsule(), &never).is_nan());
     }
 
     /// The floor is what a Kalman predictor achieves: simulated finely (Euler–Maruyama, not
@@ -342,16 +327,16 @@ mod tests {
     fn a_kalman_predictor_on_a_simulated_capsule_misses_by_the_floor() {
         let capsule = capsule();
         let sampling = sampling(0.1, 1);
-        let (a, _) = capsule.dynamics();
+        let (a, _) = dynamics(&capsule);
         let sigma = capsule.noise_rms_speed_mps / 2f64.sqrt();
         let tau = capsule.correlation_time_s;
-        let (phi, qd) = capsule.discretised(sampling.frame_period_s);
+        let (phi, qd) = discretised(&capsule, sampling.frame_period_s);
         let r = sampling.pose_noise_m.powi(2);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         let substeps = 200;
         let h = sampling.frame_period_s / substeps as f64;
         let (mut truth, mut estimate) = (Vector3::new(0.0, 0.0, sigma), Vector3::zeros());
-        let mut p = capsule.filtered_covariance(&sampling);
+        let mut p = filtered_covariance(&capsule, &sampling);
         let frames = 6000;
         let (mut squared, mut count) = (0.0, 0);
         // The estimate after each pose, for the predictions one latency frame later.
@@ -386,7 +371,7 @@ mod tests {
             }
         }
         let simulated = (2.0 * squared / count as f64).sqrt();
-        let floor = capsule.rmse_floor_m(&sampling);
+        let floor = rmse_floor_m(&capsule, &sampling);
         assert!(
             (simulated / floor - 1.0).abs() < 0.1,
             "simulated {simulated:.3e} m vs floor {floor:.3e} m"
