@@ -2,6 +2,11 @@
 
 use std::process::Command;
 
+// Only `text` is used here.
+#[allow(dead_code)]
+mod common;
+use common::text;
+
 /// The rows of `experiments --noise-floor --base BASE ARGS`, split into their columns.
 fn table(base: &str, args: &[&str]) -> Vec<Vec<String>> {
     let output = Command::new(env!("CARGO_BIN_EXE_experiments"))
@@ -10,11 +15,7 @@ fn table(base: &str, args: &[&str]) -> Vec<Vec<String>> {
         .args(args)
         .output()
         .expect("experiments runs");
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert!(output.status.success(), "{}", text(&output));
     String::from_utf8(output.stdout)
         .unwrap()
         .lines()
