@@ -213,7 +213,14 @@ pub struct StatePredictor {
     pulsation: Option<PulsationFit>,
     /// The interval between poses, averaged (s; none before two poses).
     pose_interval_s: Option<f64>,
+    /// Mean squares of the measured motion between poses and of what the model missed of it
+    /// (m², over `MOTION_SHARE_WINDOW_S`).
+    motion_sq_m2: f64,
+    residual_sq_m2: f64,
 }
+
+/// Averaging time of the unpredicted motion share: several pulsation periods.
+const MOTION_SHARE_WINDOW_S: f64 = 2.0;
 
 /// Longest span of force history kept (ns): far more than any usable pose age.
 const HISTORY_NS: u64 = 5_000_000_000;
@@ -226,6 +233,8 @@ impl StatePredictor {
             last: None,
             pulsation: config.pulsation_hz.map(PulsationFit::new),
             pose_interval_s: None,
+            motion_sq_m2: 0.0,
+            residual_sq_m2: 0.0,
             config,
         }
     }
@@ -284,6 +293,7 @@ impl StatePredictor {
                 }));
                 let mut at_capture = self.propagate(previous, capture_ns, flow_mps);
                 let measured_motion = position_m - previous_position;
+                self.record_residual(&previous, &at_capture, measured_motion, interval_s);
                 if self.pulsation.is_some() {
                     self.fit_pulsation(&previous, &mut at_capture, measured_motion, tau_s);
                 } else {
@@ -338,6 +348,37 @@ impl StatePredictor {
             None => Vector2::zeros(),
         };
         Some(Vector2::new(model.state[0][2], model.state[1][2]) + pulsation)
+    }
+
+    /// The share of the measured motion between poses that the model did not predict: RMS
+    /// residual over RMS motion, at most 1 (0 before two poses).
+    pub fn unpredicted_motion_share(&self) -> f64 {
+        if self.motion_sq_m2 > 0.0 {
+            (self.residual_sq_m2 / self.motion_sq_m2).sqrt().min(1.0)
+        } else {
+            0.0
+        }
+    }
+
+    /// Adds one pose interval's measured motion and the model's miss of it to the averages.
+    /// The poses' own noise counts as a miss too; at 100 Hz in slow flow it is a fair part of
+    /// the share (README, "What the predictor misses counts as lag").
+    fn record_residual(
+        &mut self,
+        previous: &ModelState,
+        at_capture: &ModelState,
+        measured_motion: Vector2<f64>,
+        interval_s: f64,
+    ) {
+        let model_motion =
+            Vector2::from_fn(|axis, _| at_capture.state[axis][0] - previous.state[axis][0]);
+        let residual = measured_motion - model_motion;
+        if !(residual.norm_squared().is_finite() && measured_motion.norm_squared().is_finite()) {
+            return;
+        }
+        let alpha = 1.0 - (-interval_s / MOTION_SHARE_WINDOW_S).exp();
+        self.motion_sq_m2 += alpha * (measured_motion.norm_squared() - self.motion_sq_m2);
+        self.residual_sq_m2 += alpha * (residual.norm_squared() - self.residual_sq_m2);
     }
 
     /// The disturbance estimate's time constant for a pose `horizon_s` old at actuation, s.
@@ -697,6 +738,48 @@ mod tests {
     }
 
     /// Without any delay the prediction is the measurement.
+    #[test]
+    fn the_share_of_motion_the_model_misses_is_measured() {
+        let model = NominalModel {
+            mass_kg: 7.5e-5,
+            linear_drag_n_s_per_m: 5.6e-4,
+        };
+        // The capsule driven by a known 3 Hz force, and once more with a push the model lacks
+        // (1.3 Hz, a rate the model does not carry).
+        let share = |unknown_push_n: f64| {
+            let mut predictor = StatePredictor::new(LatencyConfig::default(), model);
+            let dt = 0.01;
+            let (mut p, mut v) = (Vector2::zeros(), Vector2::zeros());
+            for k in 0..2000u64 {
+                let t = k as f64 * dt;
+                let omega = std::f64::consts::TAU * 3.0;
+                let force = Vector2::new((omega * t).sin(), (omega * t).cos()) * 5e-5;
+                predictor.predict(p, ns(t), ns(t), Vector2::zeros());
+                predictor.commanded(ns(t), force, Vector2::zeros());
+                for step in 0..10 {
+                    let h = dt / 10.0;
+                    let mid = t + (step as f64 + 0.5) * h;
+                    let push = unknown_push_n * (std::f64::consts::TAU * 1.3 * mid + 1.0).sin();
+                    let a = (force + Vector2::new(push, 0.0) - v * model.linear_drag_n_s_per_m)
+                        / model.mass_kg;
+                    v += a * h;
+                    p += v * h;
+                }
+            }
+            predictor.unpredicted_motion_share()
+        };
+        let known = share(0.0);
+        let pushed = share(3e-5);
+        assert!(
+            known < 0.05,
+            "the model's own motion counted as missed: {known}"
+        );
+        assert!(
+            pushed > 0.2 && pushed <= 1.0,
+            "a push the model lacks: {pushed}"
+        );
+    }
+
     #[test]
     fn zero_horizon_predicts_no_motion() {
         let mut predictor = StatePredictor::new(LatencyConfig::default(), MODEL);

@@ -263,6 +263,8 @@ pub struct Decision {
     pub fed_position_m: Vector2<f64>,
     /// The position predicted for the actuation time (whether fed or not).
     pub predicted_position_m: Vector2<f64>,
+    /// The share of the measured motion the predictor's model missed, recently (0 to 1).
+    pub unpredicted_motion_share: f64,
     /// What this pose's heading did to the coil-gain estimate, when estimating.
     pub gain_update: Option<GainUpdate>,
 }
@@ -795,6 +797,7 @@ impl ControlLoop {
             fed_position_m: Vector2::new(pose.position_m[0], pose.position_m[1]),
             predicted_position_m: Vector2::new(pose.position_m[0], pose.position_m[1]),
             gain_update: None,
+            unpredicted_motion_share: self.predictor.unpredicted_motion_share(),
         }
     }
 
@@ -847,6 +850,7 @@ impl ControlLoop {
                 fed_position_m: measured,
                 predicted_position_m: measured,
                 gain_update: None,
+                unpredicted_motion_share: self.predictor.unpredicted_motion_share(),
             };
         }
         let tracking = self.last_mode == ControlMode::Track;
@@ -910,6 +914,11 @@ impl ControlLoop {
                 .lead_disturbance(actuation_ns, dt)
                 .filter(|_| self.config.latency.compensate),
             coil_gain_std: self.coil_gain_std(),
+            unpredicted_motion_share: if self.config.latency.compensate {
+                self.predictor.unpredicted_motion_share()
+            } else {
+                0.0
+            },
         };
         let (force, terms) = self.controller.update(&input);
         command.mode = ControlMode::Track as u32;
@@ -972,6 +981,7 @@ impl ControlLoop {
             fed_position_m: position_m,
             predicted_position_m: measured + predicted.motion_ahead_m,
             gain_update,
+            unpredicted_motion_share: self.predictor.unpredicted_motion_share(),
         }
     }
 }
@@ -1156,6 +1166,11 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
     recording::scalar(rec, "control/force_des_n/y", d.command.force_des_n[1]);
     recording::scalar(rec, "control/mode", f64::from(d.command.mode));
     recording::scalar(rec, "control/pose_age_ms", d.pose_age_s * 1e3);
+    recording::scalar(
+        rec,
+        "control/unpredicted_motion_share",
+        d.unpredicted_motion_share,
+    );
     for (i, c) in d.command.currents().unwrap_or_default().iter().enumerate() {
         recording::scalar(rec, &format!("control/current_a/{i}"), *c);
     }

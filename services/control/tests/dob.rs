@@ -35,6 +35,7 @@ fn holding_input(
         high_disturbance: false,
         predicted_disturbance_n,
         coil_gain_std: 0.0,
+        unpredicted_motion_share: 0.0,
     }
 }
 

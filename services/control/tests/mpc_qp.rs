@@ -28,6 +28,7 @@ fn input() -> ControlInput {
         high_disturbance: false,
         predicted_disturbance_n: None,
         coil_gain_std: 0.0,
+        unpredicted_motion_share: 0.0,
     }
 }
 

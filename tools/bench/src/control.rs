@@ -89,6 +89,7 @@ impl ControllerBench {
             high_disturbance: false,
             predicted_disturbance_n: None,
             coil_gain_std: 0.0,
+            unpredicted_motion_share: 0.0,
         }
     }
 

@@ -30,6 +30,11 @@ pub struct ControlInput {
     /// `[control.gain_estimation]` is on, else its `prior_std` (the coil data's stated
     /// accuracy). The force the loop asks for is made about this far off.
     pub coil_gain_std: f64,
+    /// The share of the robot's measured motion between poses that the latency predictor's
+    /// nominal model did not predict (RMS residual over RMS motion, recent poses; 0 before
+    /// any or without compensation). That share of the motion reaches the loop only after the
+    /// delay.
+    pub unpredicted_motion_share: f64,
 }
 
 /// Internal signals worth logging.

@@ -61,7 +61,10 @@ pub struct SmcGains {
     /// with the online gain estimate's 15 % prior, ε = 0.3 until the gains are learned, which
     /// held +30 ms of camera latency with a 10 % coil gain error at 100 Hz where 0 loses still
     /// fluid (README, "Camera latency with a coil calibration error"). 0: off. No effect
-    /// without a measured delay.
+    /// without a measured delay. ε is at least the share of the robot's motion the predictor
+    /// measurably failed to predict (`ControlInput::unpredicted_motion_share`: flow noise,
+    /// form drag, whatever the nominal model lacks), which reaches the loop a delay late just
+    /// the same (README, "What the predictor misses counts as lag").
     pub delay_model_error_sigmas: f64,
     /// With `auto_schedule` and the DOB: what the latency predictor expects of the
     /// disturbance at the actuation time (`ControlInput::predicted_disturbance_n`) leads the
@@ -184,7 +187,9 @@ impl SmcDob {
         };
         let fraction = g.sampled_gain_fraction.max(1e-3);
         let unpredicted = unpredicted_lag_s(
-            (g.delay_model_error_sigmas.max(0.0) * input.coil_gain_std).min(1.0),
+            (g.delay_model_error_sigmas.max(0.0) * input.coil_gain_std)
+                .max(input.unpredicted_motion_share)
+                .min(1.0),
             input.delay_s.clamp(0.0, 1.0),
             fraction / (dt + lag),
         );
@@ -354,6 +359,7 @@ mod tests {
             high_disturbance: false,
             predicted_disturbance_n: None,
             coil_gain_std: 0.0,
+            unpredicted_motion_share: 0.0,
         }
     }
 
@@ -437,5 +443,38 @@ mod tests {
         assert!(slope_at(2.0, 0.02, 0.05) > slowed);
         let whole = slope_at(2.0, 5.0, 0.1);
         assert!((whole - bound * 0.01 / (0.01 + 0.04)).abs() < 1e-9 * bound);
+    }
+
+    #[test]
+    fn motion_the_predictor_misses_slows_the_switching_slope_as_a_gain_error_does() {
+        let model = NominalModel {
+            mass_kg: 5e-5,
+            linear_drag_n_s_per_m: 1.2e-4,
+        };
+        let slope_at = |coil_gain_std: f64, unpredicted_motion_share: f64, delay_s: f64| {
+            let gains = SmcGains {
+                auto_schedule: true,
+                ..SmcGains::default()
+            };
+            let g = SmcDob::new(gains, model).scheduled(&ControlInput {
+                delay_s,
+                coil_gain_std,
+                unpredicted_motion_share,
+                ..input(0.01)
+            });
+            g.gamma * g.k4_n / g.phi_m
+        };
+        let bound = SmcGains::default().sampled_gain_fraction * 5e-5 / 0.01;
+        // Without a delay nothing reaches the loop late.
+        assert!((slope_at(0.0, 0.8, 0.0) - bound).abs() < 1e-9 * bound);
+        // ε is the larger of 2σ of the gains and the measured share: 0.5 over 2·0.15.
+        let slowed = slope_at(0.15, 0.5, 0.05);
+        let expected = bound * 0.01 / (0.01 + 0.5 * 2.0 * (1.25f64).sin() / 50.0);
+        assert!(
+            (slowed - expected).abs() < 1e-9 * bound,
+            "{slowed} {expected}"
+        );
+        assert!((slope_at(0.15, 0.1, 0.05) - slope_at(0.15, 0.0, 0.05)).abs() < 1e-12);
+        assert!(slope_at(0.0, 0.9, 0.05) < slowed);
     }
 }
