@@ -66,6 +66,11 @@ pub struct SmcGains {
     /// form drag, whatever the nominal model lacks), which reaches the loop a delay late just
     /// the same (README, "What the predictor misses counts as lag").
     pub delay_model_error_sigmas: f64,
+    /// With `auto_schedule`: ε is at least the share of the motion the latency predictor
+    /// measurably missed (`ControlInput::unpredicted_motion_share`; see
+    /// `delay_model_error_sigmas`). false: the coil gains' uncertainty alone (the behaviour
+    /// before 2026-11-28).
+    pub unpredicted_motion_lag: bool,
     /// With `auto_schedule` and the DOB: what the latency predictor expects of the
     /// disturbance at the actuation time (`ControlInput::predicted_disturbance_n`) leads the
     /// DOB's estimate. The DOB sees a push only through its η filter, late and damped (a 3 Hz
@@ -106,6 +111,7 @@ impl Default for SmcGains {
             sampled_bandwidth_rad: 0.5,
             delay_eta_factor: 2.0,
             delay_model_error_sigmas: 2.0,
+            unpredicted_motion_lag: true,
             predicted_disturbance_lead: true,
             coil_time_constant_s: 0.0,
         }
@@ -188,7 +194,11 @@ impl SmcDob {
         let fraction = g.sampled_gain_fraction.max(1e-3);
         let unpredicted = unpredicted_lag_s(
             (g.delay_model_error_sigmas.max(0.0) * input.coil_gain_std)
-                .max(input.unpredicted_motion_share)
+                .max(if g.unpredicted_motion_lag {
+                    input.unpredicted_motion_share
+                } else {
+                    0.0
+                })
                 .min(1.0),
             input.delay_s.clamp(0.0, 1.0),
             fraction / (dt + lag),
