@@ -45,7 +45,9 @@ fn a_recorded_run_replays_through_vision_with_the_same_poses() {
     original.assert_completes(Duration::from_secs(240));
     // The camera stops on the supervisor's SIGTERM with the recording closed, even when it sat
     // waiting for frames after the plant finished (a wait that swallowed the signal once left
-    // it to be SIGKILLed, with the frames' CSV unflushed).
+    // it to be SIGKILLed, with the frames' CSV unflushed; so did the supervisor's SIGCONT
+    // overwriting iceoryx2's record of the SIGTERM on a loaded CI machine, see
+    // `millinav_kit::termination`).
     let supervisor = original.supervisor_events().expect("supervisor events");
     assert!(
         supervisor

@@ -285,9 +285,11 @@ impl Drop for RunSet {
             }
         }
         // A passing test leaves nothing behind (its recordings run to hundreds of MB); a failing
-        // one keeps its run directory for the post-mortem.
+        // one keeps its run directory for the post-mortem, as does every run when
+        // MILLINAV_KEEP_TEST_RUNS=1 (to compare a passing run with a failed one).
         if let Some(base) = self.run_dir.parent() {
-            if std::thread::panicking() {
+            let keep = std::env::var("MILLINAV_KEEP_TEST_RUNS").is_ok_and(|v| v == "1");
+            if std::thread::panicking() || keep {
                 eprintln!("run {} kept for inspection: {}", self.name, base.display());
             } else {
                 let _ = std::fs::remove_dir_all(base);

@@ -12,6 +12,7 @@ pub mod scenario;
 pub mod service_loop;
 pub mod service_main;
 pub mod summary;
+pub mod termination;
 
 pub use config::{ConfigContext, ConfigError, EXIT_CONFIG};
 pub use service_loop::{ServiceLoop, Wake};
@@ -217,6 +218,7 @@ impl Runtime {
             .config(&config)
             .create::<ipc::Service>()
             .map_err(iox("node"))?;
+        termination::watch();
         let heartbeat = ports::HeartbeatSender::new(&node, service, env.incarnation)?;
         let rec = recording::open(&env, service)?;
         lock_memory_if_asked();
@@ -237,7 +239,15 @@ impl Runtime {
 
     /// True once SIGINT or SIGTERM has been received.
     pub fn shutdown_requested(&self) -> bool {
-        self.node.wait(Duration::ZERO).is_err()
+        if termination::requested() {
+            return true;
+        }
+        // iceoryx2 forgets a request once it reported it: keep it.
+        let requested = self.node.wait(Duration::ZERO).is_err();
+        if requested {
+            termination::mark_requested();
+        }
+        requested
     }
 }
 

@@ -138,6 +138,8 @@ pub struct Inbox<T: Debug + ZeroCopySend + 'static> {
 
 impl<T: Debug + ZeroCopySend + Copy + 'static> Inbox<T> {
     pub fn new(node: &Node<ipc::Service>, name: &str) -> Result<Self, KitError> {
+        // Its `wait` tells a termination from another signal by the kit's flag.
+        crate::termination::watch();
         let subscriber = open_pubsub::<T>(node, name)?
             .subscriber_builder()
             .create()
@@ -328,6 +330,7 @@ impl FrameInbox {
 
     /// A subscriber on the frame service `name` (`services::FRAME` or `services::RAW_FRAME`).
     pub fn on(node: &Node<ipc::Service>, name: &str) -> Result<Self, KitError> {
+        crate::termination::watch();
         let subscriber = open_frame_service(node, name)?
             .subscriber_builder()
             .create()
@@ -378,12 +381,15 @@ impl Attachable for FrameInbox {
     }
 }
 
-/// Whether a listener's wait ended otherwise than by a termination signal.
+/// Whether a listener's wait ended otherwise than by a termination signal (another signal,
+/// e.g. SIGCONT, also interrupts it: the caller just waits again).
 fn still_running(waited: Result<u64, iceoryx2::port::listener::ListenerWaitError>) -> bool {
-    !matches!(
-        waited,
-        Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal)
-    )
+    match waited {
+        Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => {
+            !crate::termination::interrupted_by_termination()
+        }
+        _ => !crate::termination::requested(),
+    }
 }
 
 /// Signals liveness on the service's heartbeat event and publishes a `Heartbeat` record.

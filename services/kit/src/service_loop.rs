@@ -175,6 +175,7 @@ impl<'a> ServiceLoop<'a> {
         heartbeat: &mut HeartbeatSender,
         mut on_wake: impl FnMut(&mut Wake) -> Result<(), E>,
     ) -> Result<LoopEnd, E> {
+        crate::termination::watch();
         let waitset = WaitSetBuilder::new()
             .create::<ipc::Service>()
             .map_err(iox("waitset"))?;
@@ -192,6 +193,10 @@ impl<'a> ServiceLoop<'a> {
             .map_err(iox("attach tick"))?;
         let sleep = self.tick.min(LONGEST_SLEEP);
         loop {
+            // A request that arrived while `on_wake` ran: iceoryx2 may have lost it already.
+            if crate::termination::requested() {
+                return Ok(LoopEnd::Terminated);
+            }
             let mut wake = Wake::default();
             let result = waitset
                 .wait_and_process_once_with_timeout(
@@ -211,11 +216,14 @@ impl<'a> ServiceLoop<'a> {
                     sleep,
                 )
                 .map_err(iox("waitset"))?;
-            if matches!(
-                result,
-                WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
-            ) {
-                return Ok(LoopEnd::Terminated);
+            match result {
+                WaitSetRunResult::TerminationRequest => return Ok(LoopEnd::Terminated),
+                // Any signal interrupts the wait; only SIGTERM / SIGINT end the loop.
+                WaitSetRunResult::Interrupt if crate::termination::interrupted_by_termination() => {
+                    return Ok(LoopEnd::Terminated)
+                }
+                WaitSetRunResult::Interrupt => continue,
+                _ => {}
             }
             for input in &self.inputs {
                 input.source.drain_events();
