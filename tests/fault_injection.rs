@@ -1,6 +1,8 @@
 //! Fault injection: SIGKILL control in the middle of a lockstep tracking run. The coils must
 //! reach zero within one command deadline (seen at the emulated Teensy), the supervisor must
-//! restart control, and tracking must resume and complete.
+//! restart control, and tracking must resume and complete. And the signals a stop brings: a
+//! SIGCONT alone stops nothing, and the stop itself (SIGTERM, then the supervisor's SIGCONT and
+//! SIGTERM to each child) ends every process cleanly.
 
 use std::time::Duration;
 
@@ -101,4 +103,59 @@ fn killing_control_zeroes_coils_then_restart_resumes_tracking() {
         "error grew to {:.2} mm during the outage",
         t.max_m * 1e3
     );
+}
+
+#[test]
+fn a_sigcont_stops_nothing_and_a_sigterm_stops_every_process_cleanly() {
+    let text = scenario_text(
+        60.0,
+        &[[-18.0, 12.0], [-12.0, 8.0], [-10.0, 2.0]],
+        1.5,
+        "[control]\ncontroller = \"pid\"\n",
+    );
+    let mut run = RunSet::start("sigcont", &text).expect("start run");
+    run.wait_for_frames(100, Duration::from_secs(60))
+        .expect("loop running");
+    let services = ["plant", "camera", "vision", "flow", "control", "coilbus"];
+    let pids: Vec<i32> = services
+        .iter()
+        .map(|s| run.pid_of(s).expect("pid"))
+        .collect();
+    // SIGCONT to the supervisor and every service, as a shell's `fg` or systemd sends it: it
+    // interrupts their waits, which must simply go on.
+    let supervisor_pid = run.supervisor_pid().expect("supervisor pid");
+    for _ in 0..5 {
+        for pid in pids.iter().chain([&supervisor_pid]) {
+            kill(Pid::from_raw(*pid), Signal::SIGCONT).expect("SIGCONT");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let before = run
+        .teensy_events()
+        .expect("teensy events")
+        .iter()
+        .filter_map(|e| e.frame_seq)
+        .max()
+        .unwrap_or(0);
+    run.wait_for_frames(before + 100, Duration::from_secs(60))
+        .expect("the loop goes on after SIGCONT");
+    let events = run.supervisor_events().expect("supervisor events");
+    assert!(
+        !events
+            .iter()
+            .any(|e| matches!(e.event.as_str(), "signal" | "exit" | "restart" | "stopped")),
+        "a SIGCONT stopped something: {events:?}"
+    );
+
+    let status = run.stop(Duration::from_secs(60)).expect("supervisor stops");
+    assert!(status.success(), "supervisor exit {status}");
+    let events = run.supervisor_events().expect("supervisor events");
+    for service in services {
+        assert!(
+            events.iter().any(|e| e.service == service
+                && e.event == "stopped"
+                && e.detail == "exit status: 0"),
+            "{service} did not stop on its SIGTERM: {events:?}"
+        );
+    }
 }

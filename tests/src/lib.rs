@@ -169,6 +169,15 @@ impl RunSet {
         self.wait(timeout)
     }
 
+    /// PID of the supervisor (`millinav run`) while it runs.
+    pub fn supervisor_pid(&self) -> anyhow::Result<i32> {
+        Ok(self
+            .supervisor
+            .as_ref()
+            .context("supervisor already reaped")?
+            .id() as i32)
+    }
+
     pub fn scenario(&self) -> anyhow::Result<Scenario> {
         Ok(Scenario::load(&self.scenario_path)?)
     }

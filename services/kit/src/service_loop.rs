@@ -216,14 +216,12 @@ impl<'a> ServiceLoop<'a> {
                     sleep,
                 )
                 .map_err(iox("waitset"))?;
-            match result {
-                WaitSetRunResult::TerminationRequest => return Ok(LoopEnd::Terminated),
-                // Any signal interrupts the wait; only SIGTERM / SIGINT end the loop.
-                WaitSetRunResult::Interrupt if crate::termination::interrupted_by_termination() => {
-                    return Ok(LoopEnd::Terminated)
-                }
-                WaitSetRunResult::Interrupt => continue,
-                _ => {}
+            // Any signal interrupts the wait; only SIGTERM / SIGINT end the loop.
+            if crate::termination::waitset_says_stop(&result) {
+                return Ok(LoopEnd::Terminated);
+            }
+            if matches!(result, WaitSetRunResult::Interrupt) {
+                continue;
             }
             for input in &self.inputs {
                 input.source.drain_events();

@@ -87,6 +87,17 @@ pub fn mark_requested() {
     REQUESTED.store(true, Ordering::SeqCst);
 }
 
+/// Whether a WaitSet's result ends a loop: a termination request, or a wait interrupted by
+/// SIGTERM / SIGINT (and not by another signal; see `interrupted_by_termination`).
+pub fn waitset_says_stop(result: &iceoryx2::waitset::WaitSetRunResult) -> bool {
+    use iceoryx2::waitset::WaitSetRunResult;
+    match result {
+        WaitSetRunResult::TerminationRequest => true,
+        WaitSetRunResult::Interrupt => interrupted_by_termination(),
+        _ => requested(),
+    }
+}
+
 /// Whether a wait that a signal interrupted (EINTR) should end the service: yes for SIGTERM or
 /// SIGINT; no for any other signal (SIGCONT, SIGCHLD, ...) once the flag is watched. Without
 /// the flag's handler any interruption counts, as iceoryx2 itself treats it.

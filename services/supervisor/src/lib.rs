@@ -18,7 +18,6 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use millinav_kit::iceoryx2::port::listener::Listener;
 use millinav_kit::iceoryx2::prelude::*;
-use millinav_kit::iceoryx2::waitset::WaitSetRunResult;
 use millinav_kit::ports::{heartbeat_listener, Inbox, Outbox};
 use millinav_kit::runlog::{RunLogWriter, SupervisorEventRow};
 use millinav_kit::scenario::Scenario;
@@ -910,10 +909,9 @@ fn monitor(
                 MONITOR_TICK,
             )
             .map_err(millinav_kit::iox("waitset"))?;
-        if matches!(
-            result,
-            WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
-        ) {
+        // A SIGCONT (the shell's `fg`, systemd after its SIGTERM) interrupts the wait too, and
+        // may have erased iceoryx2's record of a SIGTERM before it: the kit's flag decides.
+        if millinav_kit::termination::waitset_says_stop(&result) {
             supervisor
                 .events
                 .record(ServiceId::Supervisor, "signal", "shutting down");
