@@ -146,6 +146,11 @@ fn a_sigcont_stops_nothing_and_a_sigterm_stops_every_process_cleanly() {
             .any(|e| matches!(e.event.as_str(), "signal" | "exit" | "restart" | "stopped")),
         "a SIGCONT stopped something: {events:?}"
     );
+    let link = run.link_events().expect("coilbus link events");
+    assert!(
+        link.iter().filter(|(_, kind)| kind != "open").count() == 0,
+        "a SIGCONT cost the serial link: {link:?}"
+    );
 
     let status = run.stop(Duration::from_secs(60)).expect("supervisor stops");
     assert!(status.success(), "supervisor exit {status}");

@@ -254,7 +254,15 @@ impl SerialLink {
                 }
                 packets
             }
-            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Vec::new(),
+            // A signal (SIGCONT, ...) that interrupted the wait is not a lost link.
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted
+                ) =>
+            {
+                Vec::new()
+            }
             Err(e) => {
                 self.drop_port(&e);
                 Vec::new()
