@@ -99,7 +99,7 @@ pub fn waitset_says_stop(result: &iceoryx2::waitset::WaitSetRunResult) -> bool {
 }
 
 /// Whether a wait that a signal interrupted (EINTR) should end the service: yes for SIGTERM or
-/// SIGINT; no for any other signal (SIGCONT, SIGCHLD, ...) once the flag is watched. Without
+/// SIGINT; no for any other signal (SIGCONT, SIGUSR1, ...) once the flag is watched. Without
 /// the flag's handler any interruption counts, as iceoryx2 itself treats it.
 pub fn interrupted_by_termination() -> bool {
     !WATCHING.load(Ordering::SeqCst) || requested()
