@@ -28,6 +28,7 @@ fn outcome() -> &'static Outcome {
             "[control]\ncontroller = \"pid\"\n",
         );
         let mut run = RunSet::start("closedloop", &text).expect("start run");
+        run.remove_at_exit();
         let status = run.wait(Duration::from_secs(120)).expect("run finishes");
         assert!(status.success(), "supervisor exit status {status}");
         let scenario = run.scenario().expect("scenario");

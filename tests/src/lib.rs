@@ -307,6 +307,49 @@ impl Drop for RunSet {
     }
 }
 
+/// Runs kept in a `static` (shared by the tests of one file) are never dropped, so their
+/// directories would pile up in /tmp at every test run: these are removed when the test process
+/// exits, unless one of its tests failed (then they are kept for the post-mortem, as a failed
+/// test's own run is) or `MILLINAV_KEEP_TEST_RUNS=1`.
+static SHARED_RUN_DIRS: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+static A_TEST_FAILED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+extern "C" fn remove_shared_runs() {
+    let keep = std::env::var("MILLINAV_KEEP_TEST_RUNS").is_ok_and(|v| v == "1");
+    let dirs = SHARED_RUN_DIRS
+        .lock()
+        .map(|d| d.clone())
+        .unwrap_or_default();
+    for dir in dirs {
+        if keep || A_TEST_FAILED.load(std::sync::atomic::Ordering::SeqCst) {
+            eprintln!("shared run kept for inspection: {}", dir.display());
+        } else {
+            let _ = std::fs::remove_dir_all(dir);
+        }
+    }
+}
+
+impl RunSet {
+    /// Marks this run as shared by a test file's `static`: see `SHARED_RUN_DIRS`.
+    pub fn remove_at_exit(&self) {
+        static INSTALL: std::sync::Once = std::sync::Once::new();
+        INSTALL.call_once(|| {
+            let previous = std::panic::take_hook();
+            std::panic::set_hook(Box::new(move |info| {
+                A_TEST_FAILED.store(true, std::sync::atomic::Ordering::SeqCst);
+                previous(info);
+            }));
+            // SAFETY: `remove_shared_runs` is a plain function that touches only statics.
+            unsafe {
+                nix::libc::atexit(remove_shared_runs);
+            }
+        });
+        if let (Some(base), Ok(mut dirs)) = (self.run_dir.parent(), SHARED_RUN_DIRS.lock()) {
+            dirs.push(base.to_path_buf());
+        }
+    }
+}
+
 pub fn shm_segments_with_prefix(prefix: &str) -> Vec<String> {
     std::fs::read_dir("/dev/shm")
         .into_iter()
