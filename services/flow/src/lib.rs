@@ -181,11 +181,11 @@ fn log_estimate(rec: &rerun::RecordingStream, pose: &Pose, estimate: &FlowEstima
 #[cfg(test)]
 mod tests {
     use super::*;
+    use millinav_kit::scratch::ScratchDir;
 
     /// A scenario file in a directory of its own, with `flow_table` as its `[flow]` table.
-    fn scenario_with(name: &str, flow_table: &str) -> (Scenario, PathBuf) {
-        let dir = std::env::temp_dir().join(format!("millinav-flow-{}-{name}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+    fn scenario_with(name: &str, flow_table: &str) -> (Scenario, ScratchDir) {
+        let dir = ScratchDir::new(&format!("millinav-flow-{name}")).unwrap();
         let text = format!(
             "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
              [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n[flow]\n{flow_table}\n"
@@ -205,29 +205,32 @@ mod tests {
 
     #[test]
     fn check_config_rejects_a_typo_a_missing_and_a_corrupt_map() {
-        let (scenario, dir) = scenario_with("bad", "mapp = \"steady.txt\"");
+        let (scenario, _) = scenario_with("typo", "mapp = \"steady.txt\"");
         let error = check_config(&scenario).unwrap_err().to_string();
         assert!(
             error.contains("[flow]") && error.contains("mapp"),
             "{error}"
         );
 
-        let (scenario, _) = scenario_with("bad", "map = \"absent.txt\"");
+        let (scenario, _) = scenario_with("absent", "map = \"absent.txt\"");
         let error = check_config(&scenario).unwrap_err().to_string();
         assert!(
             error.contains("[flow] map") && error.contains("absent.txt"),
             "{error}"
         );
 
+        // In the scenario's own directory, where the map's relative path points.
+        let (scenario, dir) = scenario_with("corrupt", "map = \"corrupt.txt\"");
+        let missing = check_config(&scenario).unwrap_err().to_string();
         std::fs::write(dir.join("corrupt.txt"), "this is not a flow map\n1 2 x\n").unwrap();
-        let (scenario, _) = scenario_with("bad", "map = \"corrupt.txt\"");
         let error = check_config(&scenario).unwrap_err().to_string();
         assert!(
             error.contains("[flow] map") && error.contains("corrupt.txt"),
             "{error}"
         );
+        assert_ne!(error, missing, "a corrupt map reads as a missing one");
 
-        let (scenario, _) = scenario_with("bad", "arrow_spacing_mm = 0.0");
+        let (scenario, _) = scenario_with("spacing", "arrow_spacing_mm = 0.0");
         let error = check_config(&scenario).unwrap_err().to_string();
         assert!(error.contains("arrow_spacing_mm"), "{error}");
     }

@@ -9,6 +9,7 @@ pub mod ports;
 pub mod recording;
 pub mod runlog;
 pub mod scenario;
+pub mod scratch;
 pub mod service_loop;
 pub mod service_main;
 pub mod summary;

@@ -459,11 +459,8 @@ impl RunLogRow for ControlRow {
 mod tests {
     use super::*;
 
-    fn temp_dir(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("runlog-{}-{name}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).expect("temp dir");
-        dir
+    fn temp_dir(name: &str) -> crate::scratch::ScratchDir {
+        crate::scratch::ScratchDir::new(&format!("runlog-{name}")).expect("temp dir")
     }
 
     fn truth(frame_seq: u64) -> TruthRow {
@@ -509,7 +506,8 @@ mod tests {
 
     /// Writes `rows` through a fresh writer, reads them back, and checks the header.
     fn round_trip<R: RunLogRow + PartialEq + std::fmt::Debug>(name: &str, rows: &[R]) {
-        let path = temp_dir(name).join(R::FILE_NAME);
+        let dir = temp_dir(name);
+        let path = dir.join(R::FILE_NAME);
         let mut writer = RunLogWriter::<R>::open_append(&path).expect("open");
         for row in rows {
             writer.append(row).expect("append");
@@ -565,7 +563,8 @@ mod tests {
 
     #[test]
     fn truth_keeps_its_fixed_decimal_format() {
-        let path = temp_dir("format").join("truth.csv");
+        let dir = temp_dir("format");
+        let path = dir.join("truth.csv");
         let mut writer = RunLogWriter::<TruthRow>::open_append(&path).expect("open");
         writer.append(&truth(3)).expect("append");
         writer.flush().expect("flush");
@@ -574,7 +573,8 @@ mod tests {
             text.lines().nth(1),
             Some("3,0.250000,0.001500000,-0.002250000,0.000100000,-0.000300000,0.500000,0.100000000,-0.050000000,1,4.500000,2,20.250000,4.500000 -0.250000 0.000000")
         );
-        let teensy_path = temp_dir("format-teensy").join("teensy_events.csv");
+        let teensy_dir = temp_dir("format-teensy");
+        let teensy_path = teensy_dir.join("teensy_events.csv");
         let mut writer = RunLogWriter::<TeensyEventRow>::open_append(&teensy_path).expect("open");
         writer.append_now(&teensy(None)).expect("append");
         let text = std::fs::read_to_string(&teensy_path).expect("read");
@@ -583,7 +583,8 @@ mod tests {
 
     #[test]
     fn a_reopened_log_appends_without_a_second_header() {
-        let path = temp_dir("append").join("supervisor_events.csv");
+        let dir = temp_dir("append");
+        let path = dir.join("supervisor_events.csv");
         let row = |event: &str| SupervisorEventRow {
             monotonic_ns: 1,
             service: "plant".into(),
@@ -657,7 +658,8 @@ mod tests {
 
     #[test]
     fn free_text_with_commas_quotes_and_newlines_survives() {
-        let path = temp_dir("quote").join("coilbus_link.csv");
+        let dir = temp_dir("quote");
+        let path = dir.join("coilbus_link.csv");
         let detail = "open /dev/ttyACM0 failed: \"busy\", retry, later\nsecond line";
         let mut writer = RunLogWriter::<LinkEventRow>::open_append(&path).expect("open");
         let row = LinkEventRow {

@@ -3,9 +3,12 @@
 //! (here the same `Pose` under its version-1 name) is refused by the kit's ports with
 //! `KitError::ContractMismatch`, naming the service and the contract version.
 
+mod common;
+
+use common::Isolated;
 use millinav_kit::iceoryx2::prelude::*;
 use millinav_kit::ports::{FrameInbox, Inbox, Outbox};
-use millinav_kit::{iceoryx_config, KitError};
+use millinav_kit::KitError;
 use shm_schemas::{services, Flag, FrameStamp, Pose, CONTRACT_VERSION};
 
 /// `Pose` byte for byte, as an older build named it.
@@ -35,16 +38,6 @@ struct FrameHeaderV1 {
     bytes: [u64; 8],
 }
 
-fn node(test: &str) -> Node<ipc::Service> {
-    let root = std::env::temp_dir().join(format!("millinav-kit-{test}-{}", std::process::id()));
-    let prefix = format!("mk{}{}_", std::process::id(), test.replace(['-', '_'], ""));
-    let config = iceoryx_config(Some(&prefix), Some(&root)).unwrap();
-    NodeBuilder::new()
-        .config(&config)
-        .create::<ipc::Service>()
-        .unwrap()
-}
-
 fn assert_mismatch(error: KitError, service: &str, expected_type: &str) {
     let text = error.to_string();
     assert!(
@@ -62,7 +55,8 @@ fn assert_mismatch(error: KitError, service: &str, expected_type: &str) {
 
 #[test]
 fn ports_refuse_a_service_of_another_contract_version() {
-    let node = node("pose");
+    let world = Isolated::new();
+    let node = world.node();
     let old = node
         .service_builder(&ServiceName::new(services::POSE).unwrap())
         .publish_subscribe::<PoseV1>()
@@ -81,7 +75,8 @@ fn ports_refuse_a_service_of_another_contract_version() {
 
 #[test]
 fn same_version_connects_and_delivers() {
-    let node = node("same");
+    let world = Isolated::new();
+    let node = world.node();
     let outbox = Outbox::<Pose>::new(&node, services::POSE).unwrap();
     let inbox = Inbox::<Pose>::new(&node, services::POSE).unwrap();
     outbox.update_connections();
@@ -96,7 +91,8 @@ fn same_version_connects_and_delivers() {
 
 #[test]
 fn frame_inbox_refuses_a_frame_header_of_another_version() {
-    let node = node("frame");
+    let world = Isolated::new();
+    let node = world.node();
     let _old = node
         .service_builder(&ServiceName::new(services::FRAME).unwrap())
         .publish_subscribe::<[u8]>()

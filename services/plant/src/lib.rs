@@ -892,16 +892,11 @@ impl ContactLog {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use millinav_kit::scratch::ScratchDir;
 
     /// A scenario file in a directory of its own with the given `[plant]` and `[flow]` tables.
-    fn scenario_with(
-        name: &str,
-        plant_table: &str,
-        flow_table: &str,
-    ) -> (Scenario, std::path::PathBuf) {
-        let dir =
-            std::env::temp_dir().join(format!("millinav-plant-{}-{name}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+    fn scenario_with(name: &str, plant_table: &str, flow_table: &str) -> (Scenario, ScratchDir) {
+        let dir = ScratchDir::new(&format!("millinav-plant-{name}")).unwrap();
         let text = format!(
             "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
              [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n\
@@ -920,7 +915,7 @@ mod tests {
 
     #[test]
     fn check_config_rejects_typos_and_missing_or_corrupt_maps() {
-        let (scenario, dir) = scenario_with("typo", "camera_noise = 2.0", "");
+        let (scenario, _) = scenario_with("typo", "camera_noise = 2.0", "");
         let error = check_config(&scenario).unwrap_err().to_string();
         assert!(
             error.contains("[plant]") && error.contains("camera_noise"),
@@ -938,13 +933,16 @@ mod tests {
             "{error}"
         );
 
-        std::fs::write(dir.join("corrupt.txt"), "garbage\n").unwrap();
-        let (scenario, _) = scenario_with("corrupt", "", "map = \"corrupt.txt\"");
+        // In the scenario's own directory, where the map's relative path points.
+        let (scenario, corrupt_dir) = scenario_with("corrupt", "", "map = \"corrupt.txt\"");
+        let missing = check_config(&scenario).unwrap_err().to_string();
+        std::fs::write(corrupt_dir.join("corrupt.txt"), "garbage\n").unwrap();
         let error = check_config(&scenario).unwrap_err().to_string();
         assert!(
             error.contains("[flow] map") && error.contains("corrupt.txt"),
             "{error}"
         );
+        assert_ne!(error, missing, "a corrupt map reads as a missing one");
 
         let (scenario, _) = scenario_with("substep", "[plant.physics]\nsubstep_ms = 0.0", "");
         let error = check_config(&scenario).unwrap_err().to_string();

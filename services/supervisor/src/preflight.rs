@@ -123,11 +123,8 @@ mod tests {
     use super::*;
     use std::os::unix::fs::PermissionsExt;
 
-    fn temp_dir(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("preflight-{}-{name}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).expect("temp dir");
-        dir
+    fn temp_dir(name: &str) -> millinav_kit::scratch::ScratchDir {
+        millinav_kit::scratch::ScratchDir::new(&format!("preflight-{name}")).expect("temp dir")
     }
 
     /// A fake service: `body` runs as a shell script with the supervisor's arguments.

@@ -464,12 +464,11 @@ fn log_pose(rec: &rerun::RecordingStream, pose: &Pose) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use millinav_kit::scratch::ScratchDir;
 
     /// A scenario file in a directory of its own, with `vision_table` as its `[vision]`.
-    fn scenario_with(name: &str, vision_table: &str) -> (Scenario, PathBuf) {
-        let dir =
-            std::env::temp_dir().join(format!("millinav-vision-{}-{name}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+    fn scenario_with(name: &str, vision_table: &str) -> (Scenario, ScratchDir) {
+        let dir = ScratchDir::new(&format!("millinav-vision-{name}")).unwrap();
         let text = format!(
             "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
              [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n[vision]\n{vision_table}\n"
