@@ -202,6 +202,84 @@ pub fn set_in_table(
     Ok(())
 }
 
+/// Most whole frames of camera latency a matrix may ask for (the plant keeps that many past
+/// states).
+pub const MAX_LATENCY_FRAMES: i64 = 100;
+
+/// Adds `delay_ms` from capture to the coils to a scenario's TOML as the lockstep twin takes a
+/// real pipeline's delay: whole frame periods become camera latency (`[plant.camera]
+/// latency_frames`: the frame shows an older state, which control measures from its stamps) and
+/// the rest a delay inside the frame (`[plant] command_delay_ms`: the previous command drives
+/// until then), which control is told as a lab would measure it (`[control.latency]
+/// unstamped_delay_ms`). A delay inside the frame that reaches a frame period carries into one
+/// more frame of latency. So any delay is possible at any loop rate: 50 ms at 10 Hz is half a
+/// frame, 35 ms at 100 Hz three frames and 5 ms.
+pub fn add_capture_to_coils_delay(
+    doc: &mut toml::Table,
+    delay_ms: f64,
+    frame_period_ms: f64,
+) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        delay_ms.is_finite() && delay_ms >= 0.0,
+        "a delay from capture to the coils must be >= 0 ms, got {delay_ms}"
+    );
+    anyhow::ensure!(
+        frame_period_ms.is_finite() && frame_period_ms > 0.0,
+        "the frame period must be > 0 ms, got {frame_period_ms}"
+    );
+    let number = |doc: &toml::Table, path: &[&str]| -> Option<f64> {
+        let (key, tables) = path.split_last()?;
+        let mut table = doc;
+        for name in tables {
+            table = table.get(*name)?.as_table()?;
+        }
+        let value = table.get(*key)?;
+        value
+            .as_float()
+            .or_else(|| value.as_integer().map(|i| i as f64))
+    };
+    let frames_before = number(doc, &["plant", "camera", "latency_frames"]).unwrap_or(0.0);
+    let in_frame_before = number(doc, &["plant", "command_delay_ms"]).unwrap_or(0.0);
+    let told_before = number(doc, &["control", "latency", "unstamped_delay_ms"]).unwrap_or(0.0);
+    // A hair of tolerance so that 100 ms at a 10 ms frame is ten frames, not nine and 10 ms.
+    let tolerance_ms = 1e-9 * frame_period_ms.max(1.0);
+    let in_frame_total = in_frame_before + delay_ms;
+    let carried = ((in_frame_total + tolerance_ms) / frame_period_ms).floor();
+    let frames = frames_before + carried;
+    let in_frame = (in_frame_total - carried * frame_period_ms).max(0.0);
+    let in_frame = if in_frame < tolerance_ms {
+        0.0
+    } else {
+        in_frame
+    };
+    anyhow::ensure!(
+        frames <= MAX_LATENCY_FRAMES as f64,
+        "a delay from capture to the coils of {:.1} ms is more than {MAX_LATENCY_FRAMES} frame \
+         periods ({frame_period_ms} ms)",
+        frames_before * frame_period_ms + in_frame_before + delay_ms
+    );
+    set_in_table(
+        doc,
+        &["plant", "camera", "latency_frames"],
+        toml::Value::Integer(frames as i64),
+    )?;
+    if in_frame != in_frame_before {
+        set_in_table(
+            doc,
+            &["plant", "command_delay_ms"],
+            toml::Value::Float(in_frame),
+        )?;
+        // Control is told what the stamps cannot show: the change inside the frame.
+        let told = (told_before + in_frame - in_frame_before).max(0.0);
+        set_in_table(
+            doc,
+            &["control", "latency", "unstamped_delay_ms"],
+            toml::Value::Float(told),
+        )?;
+    }
+    Ok(())
+}
+
 /// Sections of a scenario that `--set` may change: the services' tables. The run, fluid and
 /// trajectory tables are the matrix's own (flags and cells set them).
 pub const SETTABLE_SECTIONS: [&str; 7] = millinav_kit::scenario::KNOWN_SECTIONS;
@@ -836,6 +914,54 @@ mod tests {
     }
 
     use super::*;
+
+    #[test]
+    fn a_delay_splits_into_whole_frames_and_the_rest_inside_the_frame() {
+        let delays = |doc: &toml::Table| {
+            let plant = doc["plant"].as_table().unwrap();
+            let in_frame = plant.get("command_delay_ms").map(|v| v.as_float().unwrap());
+            let told = doc
+                .get("control")
+                .map(|c| c["latency"]["unstamped_delay_ms"].as_float().unwrap());
+            (
+                plant["camera"]["latency_frames"].as_integer().unwrap(),
+                in_frame,
+                told,
+            )
+        };
+        // Whole frames: camera latency alone, nothing inside the frame.
+        let mut doc = toml::Table::new();
+        add_capture_to_coils_delay(&mut doc, 100.0, 10.0).unwrap();
+        assert_eq!(delays(&doc), (10, None, None));
+        // Half a 10 Hz frame: inside the frame, told to control.
+        let mut doc = toml::Table::new();
+        add_capture_to_coils_delay(&mut doc, 50.0, 100.0).unwrap();
+        assert_eq!(delays(&doc), (0, Some(50.0), Some(50.0)));
+        // 35 ms at 100 Hz: three frames and 5 ms.
+        let mut doc = toml::Table::new();
+        add_capture_to_coils_delay(&mut doc, 35.0, 10.0).unwrap();
+        let (frames, in_frame, told) = delays(&doc);
+        assert_eq!(frames, 3);
+        assert!((in_frame.unwrap() - 5.0).abs() < 1e-9 && (told.unwrap() - 5.0).abs() < 1e-9);
+        // On top of a pipeline the scenario already has (6 ms inside a 10 ms frame, told),
+        // 7 ms more carries into one frame and leaves 3 ms; control is told the change.
+        let mut doc: toml::Table = toml::from_str(
+            "[plant]\ncommand_delay_ms = 6.0\n[control.latency]\nunstamped_delay_ms = 6.0\n",
+        )
+        .unwrap();
+        add_capture_to_coils_delay(&mut doc, 7.0, 10.0).unwrap();
+        let (frames, in_frame, told) = delays(&doc);
+        assert_eq!(frames, 1);
+        assert!((in_frame.unwrap() - 3.0).abs() < 1e-9 && (told.unwrap() - 3.0).abs() < 1e-9);
+        // Refused: negative, not finite, beyond the plant's history.
+        for bad in [-1.0, f64::NAN, 1001.0 * 10.0] {
+            let mut doc = toml::Table::new();
+            assert!(
+                add_capture_to_coils_delay(&mut doc, bad, 10.0).is_err(),
+                "{bad}"
+            );
+        }
+    }
 
     #[test]
     fn the_matrix_is_made_from_the_rigs_conditions() {

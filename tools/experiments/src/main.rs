@@ -12,7 +12,10 @@ use millinav_experiments::campaign::{
 };
 use millinav_experiments::runner::{self, TaskCells, TaskEnd};
 use millinav_experiments::slurm::{self, SlurmSettings};
-use millinav_experiments::{noise_floor, report, rig_matrix, robustness, set_in_table};
+use millinav_experiments::{
+    add_capture_to_coils_delay, noise_floor, report, rig_matrix, robustness, set_in_table,
+    MAX_LATENCY_FRAMES,
+};
 use millinav_kit::scenario::Scenario;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -115,8 +118,11 @@ struct MatrixArgs {
     /// for the paper's 10 Hz loop.
     #[arg(long)]
     frame_period_ms: Option<f64>,
-    /// Camera latency (ms) on top of the frame period, instead of the base scenario's
-    /// `[plant.camera] latency_frames`: a whole number of frame periods, e.g. 100 at 10 Hz.
+    /// Extra latency from capture to the coils (ms) on top of the frame period, instead of the
+    /// base scenario's `[plant.camera] latency_frames`, e.g. 100 at 10 Hz: whole frame periods
+    /// are camera latency (control measures it from the frames' stamps), the rest a delay inside
+    /// the frame added to `--command-delay-ms` (or the base scenario's) and told to control, so
+    /// 50 ms at 10 Hz or 35 ms at 100 Hz run as well. At most 100 frame periods.
     #[arg(long)]
     camera_latency_ms: Option<f64>,
     /// Delay from a frame's capture to its command reaching the coils inside each frame (ms,
@@ -621,23 +627,6 @@ fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
         );
         base.run.frame_period_ms = period;
     }
-    if let Some(latency_ms) = args.camera_latency_ms {
-        let frames = latency_ms / base.run.frame_period_ms;
-        anyhow::ensure!(
-            latency_ms.is_finite()
-                && latency_ms >= 0.0
-                && (frames - frames.round()).abs() < 1e-6
-                && frames <= 100.0,
-            "--camera-latency-ms must be a whole number of frame periods ({} ms) up to 100 of \
-             them, got {latency_ms}",
-            base.run.frame_period_ms
-        );
-        set_in_table(
-            &mut base.sections,
-            &["plant", "camera", "latency_frames"],
-            toml::Value::Integer(frames.round() as i64),
-        )?;
-    }
     if let Some(delay_ms) = args.command_delay_ms {
         anyhow::ensure!(
             delay_ms.is_finite() && delay_ms >= 0.0 && delay_ms < base.run.frame_period_ms,
@@ -651,6 +640,23 @@ fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
         ] {
             set_in_table(&mut base.sections, path, toml::Value::Float(delay_ms))?;
         }
+    }
+    if let Some(latency_ms) = args.camera_latency_ms {
+        anyhow::ensure!(
+            latency_ms.is_finite()
+                && latency_ms >= 0.0
+                && latency_ms <= MAX_LATENCY_FRAMES as f64 * base.run.frame_period_ms,
+            "--camera-latency-ms must be within 0..={} ({MAX_LATENCY_FRAMES} frame periods of {} \
+             ms), got {latency_ms}",
+            MAX_LATENCY_FRAMES as f64 * base.run.frame_period_ms,
+            base.run.frame_period_ms
+        );
+        set_in_table(
+            &mut base.sections,
+            &["plant", "camera", "latency_frames"],
+            toml::Value::Integer(0),
+        )?;
+        add_capture_to_coils_delay(&mut base.sections, latency_ms, base.run.frame_period_ms)?;
     }
     if let Some(std) = args.coil_gain_error {
         anyhow::ensure!(

@@ -13,7 +13,7 @@ use millinav_kit::scenario::Scenario;
 use plotters::prelude::*;
 
 use crate::report::paper_smc_dob_rmse_mm;
-use crate::{cell_scenario, set_in_table, Cell, FlowSetting, Metrics};
+use crate::{add_capture_to_coils_delay, cell_scenario, set_in_table, Cell, FlowSetting, Metrics};
 
 /// A disturbance the matrix varies.
 #[derive(
@@ -31,7 +31,9 @@ pub enum Axis {
     Recirculation,
     /// `[plant.physics] coil_gain_error_std`: per-coil gain error the controller does not know.
     CoilGainError,
-    /// Extra camera latency, ms (whole frames; `[plant.camera] latency_frames`).
+    /// Extra latency from capture to the coils, ms: whole frames of camera latency
+    /// (`[plant.camera] latency_frames`), the rest inside the frame (`[plant]
+    /// command_delay_ms`, told to control), [`crate::add_capture_to_coils_delay`].
     CameraLatencyMs,
     /// Viscosity, cP: every viscosity the rig has a flow map for at the matrix's flow.
     ViscosityCp,
@@ -160,17 +162,12 @@ impl Case {
     }
 }
 
-/// Every case for `controllers` at the two loop rates around `around`; latency levels that are
-/// not a whole number of frames at a rate are skipped there.
+/// Every case for `controllers` at the two loop rates around `around`.
 pub fn cases(controllers: &[String], trials: u64, around: &Around) -> Vec<Case> {
     let mut out = Vec::new();
     for frame_period_ms in [100.0, 10.0] {
         for axis in Axis::ALL {
             for &level in axis.levels(around) {
-                let frames = level / frame_period_ms;
-                if axis == Axis::CameraLatencyMs && (frames - frames.round()).abs() > 1e-9 {
-                    continue;
-                }
                 for controller in controllers {
                     for seed in 1..=trials {
                         let viscosity_cp = if axis == Axis::ViscosityCp {
@@ -239,11 +236,9 @@ pub fn case_scenario(base: &Scenario, case: &Case) -> anyhow::Result<String> {
             &["plant", "physics", "coil_gain_error_std"],
             level.into(),
         )?,
-        Axis::CameraLatencyMs => set_in_table(
-            &mut doc,
-            &["plant", "camera", "latency_frames"],
-            toml::Value::Integer((level / case.frame_period_ms).round() as i64),
-        )?,
+        Axis::CameraLatencyMs => {
+            add_capture_to_coils_delay(&mut doc, level, case.frame_period_ms)?;
+        }
         Axis::ViscosityCp => {}
     }
     Ok(toml::to_string(&doc)?)
@@ -514,13 +509,12 @@ mod tests {
         let controllers = vec!["smc-dob-auto".to_string()];
         let around = Around::on_rig(&Rig::load_paper().unwrap()).unwrap();
         let all = cases(&controllers, 1, &around);
-        // 50 ms is not a whole number of 100 ms frames: skipped at 10 Hz only.
-        assert!(all
-            .iter()
-            .any(|c| c.level == 50.0 && c.frame_period_ms == 10.0));
-        assert!(!all
-            .iter()
-            .any(|c| c.level == 50.0 && c.frame_period_ms == 100.0));
+        // 50 ms is half a frame at 10 Hz: run there too, inside the frame.
+        for period in [10.0, 100.0] {
+            assert!(all
+                .iter()
+                .any(|c| c.level == 50.0 && c.frame_period_ms == period));
+        }
         for case in &all {
             let text = case_scenario(&base, case).unwrap();
             let scenario = Scenario::parse(&text, &root.join("scenarios/case.toml")).unwrap();
@@ -534,10 +528,17 @@ mod tests {
                 Axis::FlowNoise => expect(&format!("fraction = {:?}", case.level)),
                 Axis::Recirculation => expect(&format!("strength_fraction = {:?}", case.level)),
                 Axis::CoilGainError => expect(&format!("coil_gain_error_std = {:?}", case.level)),
-                Axis::CameraLatencyMs => expect(&format!(
-                    "latency_frames = {}",
-                    (case.level / case.frame_period_ms).round()
-                )),
+                Axis::CameraLatencyMs => {
+                    let frames = (case.level / case.frame_period_ms).floor();
+                    let in_frame = case.level - frames * case.frame_period_ms;
+                    expect(&format!("latency_frames = {frames}"));
+                    if in_frame > 0.0 {
+                        expect(&format!("command_delay_ms = {in_frame:?}"));
+                        expect(&format!("unstamped_delay_ms = {in_frame:?}"));
+                    } else {
+                        assert!(!text.contains("command_delay_ms"), "{}", case.name());
+                    }
+                }
                 Axis::ViscosityCp => assert_eq!(scenario.fluid.viscosity_cp, case.level),
             }
         }
