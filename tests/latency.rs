@@ -124,11 +124,14 @@ fn fifty_ms_at_100_hz_is_compensated_in_still_fluid_and_7_cm_s_flow() {
 /// are uncertain (`[control.smc] delay_model_error_sigmas`, 2 by default), or as the share of the
 /// motion it measurably missed (`unpredicted_motion_lag`, on by default), whichever is larger.
 /// Without either share the same run (still 4.3 cP fluid, +30 ms, 10 % gain error, seed 2)
-/// rings from the start and is thrown across the canal.
+/// rings from the start and is thrown across the canal. The case was found on the twin without
+/// the scenarios' 6 ms pipeline delay and runs without it: with it, +36 ms in all, seed 2 holds
+/// even without the share (0.24 mm), so the case would no longer tell the two apart.
 #[test]
 fn latency_with_a_coil_gain_error_is_held_in_still_fluid() {
     let with_gain_error = |delay_model_error_sigmas: Option<f64>| {
         move |base: &mut Scenario| {
+            millinav_tests::without_pipeline_delay(base);
             let sections = &mut base.sections;
             set_in_table(
                 sections,

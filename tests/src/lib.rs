@@ -528,6 +528,19 @@ pub fn vessel8_scenario_text(duration_s: f64, flow: bool, extra: &str) -> String
     out
 }
 
+/// Takes the scenario's pipeline delay out (`[plant] command_delay_ms` and what control is told
+/// of it, both 0): for tests of a mechanism on a case that was found and measured on the twin
+/// before the scenarios had that delay, which moves single seeds of a chaotic case.
+pub fn without_pipeline_delay(base: &mut Scenario) {
+    for path in [
+        &["plant", "command_delay_ms"][..],
+        &["control", "latency", "unstamped_delay_ms"][..],
+    ] {
+        millinav_experiments::set_in_table(&mut base.sections, path, toml::Value::Float(0.0))
+            .expect("scenario tables");
+    }
+}
+
 /// One cell of the paper's matrix built from `scenarios/paper.toml` (after `adjust`, e.g. a
 /// shorter run or another frame period), ready to run in either mode and to score.
 pub struct PaperCell {

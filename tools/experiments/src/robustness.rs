@@ -361,7 +361,7 @@ pub fn write_tables(
         let ratio = ratio.map_or_else(|| "–".to_string(), |r| format!("{r:.2}"));
         let floor = floor_m(c).map_or_else(
             || "–".to_string(),
-            |(capsule, follower)| format!("{:.2} / {:.2}", capsule * 1e3, follower * 1e3),
+            |(capsule, follower)| format!("{:.3} / {:.3}", capsule * 1e3, follower * 1e3),
         );
         let _ = writeln!(
             md,
@@ -506,6 +506,9 @@ mod tests {
     fn every_axis_reaches_the_scenario() {
         let root = fieldmaps::data_root();
         let base = Scenario::load(&root.join("scenarios/paper.toml")).unwrap();
+        let base_in_frame_ms = base.sections["plant"]["command_delay_ms"]
+            .as_float()
+            .unwrap_or(0.0);
         let controllers = vec!["smc-dob-auto".to_string()];
         let around = Around::on_rig(&Rig::load_paper().unwrap()).unwrap();
         let all = cases(&controllers, 1, &around);
@@ -529,14 +532,33 @@ mod tests {
                 Axis::Recirculation => expect(&format!("strength_fraction = {:?}", case.level)),
                 Axis::CoilGainError => expect(&format!("coil_gain_error_std = {:?}", case.level)),
                 Axis::CameraLatencyMs => {
-                    let frames = (case.level / case.frame_period_ms).floor();
-                    let in_frame = case.level - frames * case.frame_period_ms;
-                    expect(&format!("latency_frames = {frames}"));
-                    if in_frame > 0.0 {
-                        expect(&format!("command_delay_ms = {in_frame:?}"));
-                        expect(&format!("unstamped_delay_ms = {in_frame:?}"));
-                    } else {
-                        assert!(!text.contains("command_delay_ms"), "{}", case.name());
+                    // The level comes on top of the base's own delay inside the frame (the
+                    // scenario's pipeline), whole frames as camera latency, the rest inside.
+                    let doc: toml::Table = toml::from_str(&text).unwrap();
+                    let number = |table: &str, sub: Option<&str>, key: &str| {
+                        let mut t = doc[table].as_table().unwrap();
+                        if let Some(sub) = sub {
+                            t = t[sub].as_table().unwrap();
+                        }
+                        t.get(key).map_or(0.0, |v| {
+                            v.as_float().or(v.as_integer().map(|i| i as f64)).unwrap()
+                        })
+                    };
+                    let total = base_in_frame_ms + case.level;
+                    let frames = (total / case.frame_period_ms + 1e-9).floor();
+                    let in_frame = total - frames * case.frame_period_ms;
+                    let name = case.name();
+                    assert_eq!(
+                        number("plant", Some("camera"), "latency_frames"),
+                        frames,
+                        "{name}"
+                    );
+                    for (table, sub, key) in [
+                        ("plant", None, "command_delay_ms"),
+                        ("control", Some("latency"), "unstamped_delay_ms"),
+                    ] {
+                        let got = number(table, sub, key);
+                        assert!((got - in_frame).abs() < 1e-9, "{name}: {key} {got}");
                     }
                 }
                 Axis::ViscosityCp => assert_eq!(scenario.fluid.viscosity_cp, case.level),
