@@ -7,7 +7,7 @@
 //! matrix runs three).
 
 use millinav_experiments::report::paper_smc_dob_rmse_mm;
-use millinav_experiments::{fast_run, set_in_table, Cell, FlowSetting};
+use millinav_experiments::{fast_run, Cell, FlowSetting};
 use millinav_tests::PaperCell;
 
 /// The paper's pipeline: capture → coils, ms (README, "Latest matrix").
@@ -24,18 +24,7 @@ fn run(viscosity_cp: f64, flow: FlowSetting, controller: &str) -> millinav_exper
     };
     let paper = PaperCell::new(&cell, |base| {
         base.run.frame_period_ms = 100.0;
-        // As `experiments --command-delay-ms`: the twin's delay, told to control.
-        for path in [
-            &["plant", "command_delay_ms"][..],
-            &["control", "latency", "unstamped_delay_ms"][..],
-        ] {
-            set_in_table(
-                &mut base.sections,
-                path,
-                toml::Value::Float(PAPER_PIPELINE_DELAY_MS),
-            )
-            .expect("delay");
-        }
+        millinav_tests::with_pipeline_delay(base, PAPER_PIPELINE_DELAY_MS);
     });
     let m = paper.metrics(&fast_run(&paper.scenario).expect("fast run"));
     println!(

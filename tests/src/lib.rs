@@ -528,17 +528,24 @@ pub fn vessel8_scenario_text(duration_s: f64, flow: bool, extra: &str) -> String
     out
 }
 
-/// Takes the scenario's pipeline delay out (`[plant] command_delay_ms` and what control is told
-/// of it, both 0): for tests of a mechanism on a case that was found and measured on the twin
-/// before the scenarios had that delay, which moves single seeds of a chaotic case.
-pub fn without_pipeline_delay(base: &mut Scenario) {
+/// Sets the scenario's pipeline delay, capture → coils inside the frame (`[plant]
+/// command_delay_ms`), and tells control the same (`[control.latency] unstamped_delay_ms`), as
+/// `experiments --command-delay-ms` does.
+pub fn with_pipeline_delay(base: &mut Scenario, delay_ms: f64) {
     for path in [
         &["plant", "command_delay_ms"][..],
         &["control", "latency", "unstamped_delay_ms"][..],
     ] {
-        millinav_experiments::set_in_table(&mut base.sections, path, toml::Value::Float(0.0))
+        millinav_experiments::set_in_table(&mut base.sections, path, toml::Value::Float(delay_ms))
             .expect("scenario tables");
     }
+}
+
+/// Takes the scenario's pipeline delay out: for tests of a mechanism on a case that was found
+/// and measured on the twin before the scenarios had that delay, which moves single seeds of a
+/// chaotic case.
+pub fn without_pipeline_delay(base: &mut Scenario) {
+    with_pipeline_delay(base, 0.0);
 }
 
 /// One cell of the paper's matrix built from `scenarios/paper.toml` (after `adjust`, e.g. a
