@@ -125,7 +125,10 @@ pub struct ControlConfig {
     /// the heading where they come closest (none: the field stays at `field_heading_deg`, as
     /// in the paper). The force the coils can make in one direction depends several-fold on
     /// the magnet's heading, since F = (m·∇)B. Once the force is within reach again the field
-    /// turns back toward `field_heading_deg` as far as the force stays within reach.
+    /// turns back toward `field_heading_deg` as far as the force stays within reach. Whatever
+    /// this allows, the field turns no faster than the capsule follows it within one 15°
+    /// candidate step (sin 15° over its rotation time constant: about 1350°/s at 20 cP and
+    /// 1 mT), so at a fast loop a turn is spread over several commands.
     pub field_heading_turn_deg: Option<f64>,
     /// Wall clearance of the paths `millinav ctl goto` plans (A* on the canal mask), mm. The
     /// paper's 5 mm suits its heart phantom; a narrower vessel needs less (vessel8: 3).
@@ -312,10 +315,28 @@ pub struct ControlLoop {
     /// How long the field must have held its direction before a frame's heading measures it
     /// (ns): the gain estimate's `settle_ms`, and at least three rotation time constants.
     alignment_window_ns: u64,
+    /// Three rotation time constants of the capsule in the orientation field (ns): after a
+    /// turn held this long the magnet points where the field does.
+    rotation_settle_ns: u64,
+    /// The fastest the orientation field turns (rad/s): what the capsule follows within one
+    /// candidate step (see `field_heading_turn_deg`).
+    max_field_turn_rate_rad_per_s: f64,
+    /// How far the field may still turn (rad): grows at the rate above, up to
+    /// `field_heading_turn_deg`, and each turn spends it.
+    field_turn_budget_rad: f64,
+    /// The orientation field's heading from each command's actuation time (none: coils off),
+    /// to know where it pointed when a frame was captured.
+    field_history: VecDeque<(u64, Option<f64>)>,
+    /// The magnet's heading minus the field's, last measured on a frame captured after the
+    /// field had held still for `rotation_settle_ns` (rad).
+    magnet_offset_rad: f64,
 }
 
 /// Commands remembered for matching frames to the currents in effect at their capture.
 const ISSUED_HISTORY_LEN: usize = 64;
+/// Commands whose orientation field is remembered: more than a pose may be old
+/// (`max_pose_age_ms`) at a 1 kHz loop.
+const FIELD_HISTORY_LEN: usize = 1024;
 
 impl ControlLoop {
     pub fn new(
@@ -366,6 +387,12 @@ impl ControlLoop {
                 / (robot.magnet_moment_am2 * field_magnitude_t).max(1e-12);
         let alignment_window_s =
             (config.gain_estimation.settle_ms * 1e-3).max(3.0 * rotation_time_constant_s);
+        // Steadily turning at ω the overdamped capsule lags the field by asin(ω τ).
+        let max_field_turn_rate_rad_per_s =
+            FIELD_HEADING_STEP_DEG.to_radians().sin() / rotation_time_constant_s.max(1e-6);
+        let field_turn_budget_rad = config
+            .field_heading_turn_deg
+            .map_or(0.0, |deg| deg.max(0.0).to_radians());
         let gain_estimator = config
             .gain_estimation
             .enabled
@@ -394,6 +421,11 @@ impl ControlLoop {
             field_heading_rad: config_heading,
             field_magnitude_t,
             alignment_window_ns: (alignment_window_s.min(10.0) * 1e9) as u64,
+            rotation_settle_ns: ((3.0 * rotation_time_constant_s).min(10.0) * 1e9) as u64,
+            max_field_turn_rate_rad_per_s,
+            field_turn_budget_rad,
+            field_history: VecDeque::with_capacity(ISSUED_HISTORY_LEN),
+            magnet_offset_rad: 0.0,
         }
     }
 
@@ -580,24 +612,26 @@ impl ControlLoop {
         (currents, achieved)
     }
 
-    /// [`Self::allocate`], turning the orientation field when `field_heading_turn_deg` allows
-    /// and the coils cannot make `force` at the present heading (see there).
+    /// [`Self::allocate`], turning the orientation field by at most `max_turn_rad` when
+    /// `field_heading_turn_deg` allows and the coils cannot make `force` at the present
+    /// heading (see there). The magnet points `magnet_offset` (rad) from the field, and turns
+    /// with it.
     fn allocate_turning(
         &mut self,
         position: &Vector2<f64>,
-        measured_heading: f64,
+        magnet_offset: f64,
         force: &Vector2<f64>,
         slew: Option<(&[f64; MAX_COILS], f64)>,
+        max_turn_rad: f64,
     ) -> ([f64; MAX_COILS], Vector2<f64>) {
-        let Some(turn_deg) = self.config.field_heading_turn_deg else {
-            return self.allocate(position, measured_heading, force, slew);
-        };
         let present = self.field_heading_rad;
+        if self.config.field_heading_turn_deg.is_none() {
+            return self.allocate(position, present + magnet_offset, force, slew);
+        }
         let home = self.config.field_heading_deg.to_radians();
         let miss = |achieved: &Vector2<f64>| (force - achieved).norm();
         let made = force.norm() * FORCE_MADE_FRACTION + 1e-12;
-        // The magnet turns with the field: keep the offset the camera measures between them.
-        let offset = wrap_angle(measured_heading - present);
+        let offset = magnet_offset;
         let at = |this: &Self, field_heading: f64| {
             this.allocate_with_field(position, field_heading + offset, field_heading, force, slew)
         };
@@ -606,8 +640,8 @@ impl ControlLoop {
         if at_home && miss(&stay.1) <= made {
             return stay;
         }
-        let steps = (turn_deg / FIELD_HEADING_STEP_DEG).floor().max(0.0) as i32;
         let step = FIELD_HEADING_STEP_DEG.to_radians();
+        let steps = (max_turn_rad / step + 1e-9).floor().max(0.0) as i32;
         let toward_home = |h: f64| wrap_angle(h - home).abs();
         let mut best = (present, stay, miss(&stay.1));
         let mut best_home = (miss(&stay.1) <= made).then_some((present, stay));
@@ -645,6 +679,59 @@ impl ControlLoop {
         let rate = self.config.max_current_slew_a_per_s?;
         ((force - achieved).norm() > yielding.shortfall_fraction * force.norm())
             .then(|| (previous, step * yielding.max_current_slew_a_per_s / rate))
+    }
+
+    /// Remembers that the orientation field points at `heading` (none: coils off) from
+    /// `actuation_ns` on.
+    fn record_field(&mut self, actuation_ns: u64, heading: Option<f64>) {
+        if self.field_history.len() == FIELD_HISTORY_LEN {
+            self.field_history.pop_front();
+        }
+        self.field_history.push_back((actuation_ns, heading));
+    }
+
+    /// The magnet's heading minus the field's (rad), from a pose captured at `capture_ns` with
+    /// `measured_heading`. A frame taken while the capsule was still turning after the field
+    /// (or before the field it shows turned again) would put the magnet where it no longer is,
+    /// so such a frame keeps the last offset measured on a settled one. Before any turn is on
+    /// record the measured heading stands as it is.
+    fn magnet_offset(&mut self, measured_heading: f64, capture_ns: u64) -> f64 {
+        let present = self.field_heading_rad;
+        let window_start = capture_ns.saturating_sub(self.rotation_settle_ns);
+        let mut settled = true;
+        for (acted_ns, heading) in self.field_history.iter().rev() {
+            let same = heading.is_some_and(|h| wrap_angle(h - present).abs() < 1e-9);
+            if !same {
+                settled = false;
+                break;
+            }
+            if *acted_ns <= window_start {
+                break;
+            }
+        }
+        if settled {
+            self.magnet_offset_rad = wrap_angle(measured_heading - present);
+        }
+        self.magnet_offset_rad
+    }
+
+    /// How far the field may turn for a command acting at `actuation_ns` (rad): the budget
+    /// grown at the capsule's turning rate since the last command, up to
+    /// `field_heading_turn_deg`.
+    fn field_turn_budget(&mut self, actuation_ns: u64) -> f64 {
+        let cap = self
+            .config
+            .field_heading_turn_deg
+            .map_or(0.0, |deg| deg.max(0.0).to_radians());
+        let since_s = self
+            .field_history
+            .back()
+            .map_or(f64::INFINITY, |(acted_ns, _)| {
+                actuation_ns.saturating_sub(*acted_ns) as f64 * 1e-9
+            });
+        let grown = self.field_turn_budget_rad + self.max_field_turn_rate_rad_per_s * since_s;
+        self.field_turn_budget_rad = grown.min(cap);
+        self.field_turn_budget_rad
     }
 
     /// Remembers that `currents` act from `actuation_ns` on.
@@ -784,6 +871,7 @@ impl ControlLoop {
         // Tracking resumes from zero current.
         self.last_tracked = Some((actuation_ns, [0.0; MAX_COILS]));
         self.record_issued(actuation_ns, [0.0; MAX_COILS]);
+        self.record_field(actuation_ns, None);
         Decision {
             command: CoilCommand {
                 mode: ControlMode::Safe as u32,
@@ -836,6 +924,8 @@ impl ControlLoop {
             self.last_mode = ControlMode::from_u32(command.mode).unwrap_or(ControlMode::Safe);
             self.last_tracked = Some((actuation_ns, command.currents_a));
             self.record_issued(actuation_ns, command.currents_a);
+            let field = hold.then_some(self.field_heading_rad);
+            self.record_field(actuation_ns, field);
             self.controller.reset();
             self.predictor.reset();
             self.predictor
@@ -931,13 +1021,16 @@ impl ControlLoop {
             _ => None,
         };
         let slew = slew.as_ref().map(|(previous, step)| (previous, *step));
+        let magnet_offset = self.magnet_offset(pose.heading_rad, t_ns);
+        let max_turn_rad = self.field_turn_budget(actuation_ns);
         let field_heading_before = self.field_heading_rad;
         let (mut currents, mut achieved) =
-            self.allocate_turning(&position_m, pose.heading_rad, &force, slew);
-        // The magnet's heading under the field chosen now (the offset the camera measures
-        // between them kept).
-        let magnet_heading =
-            self.field_heading_rad + wrap_angle(pose.heading_rad - field_heading_before);
+            self.allocate_turning(&position_m, magnet_offset, &force, slew, max_turn_rad);
+        self.field_turn_budget_rad = (self.field_turn_budget_rad
+            - wrap_angle(self.field_heading_rad - field_heading_before).abs())
+        .max(0.0);
+        // The magnet's heading under the field chosen now (the offset between them kept).
+        let magnet_heading = self.field_heading_rad + magnet_offset;
         if let Some(wider) = self.yielded_step(slew, &force, &achieved) {
             // At the heading the bound chose: a turn is no reason to step faster.
             (currents, achieved) = self.allocate_with_field(
@@ -965,6 +1058,7 @@ impl ControlLoop {
         command.currents_a = currents;
         self.last_tracked = Some((actuation_ns, currents));
         self.record_issued(actuation_ns, currents);
+        self.record_field(actuation_ns, Some(self.field_heading_rad));
         self.controller.applied(achieved, at_ratings);
         self.predictor.commanded(actuation_ns, achieved, flow_mps);
         if let Some(observer) = &mut self.observer {
@@ -1463,7 +1557,7 @@ fn log_planned_path(rec: &rerun::RecordingStream, reference: &Reference) {
 mod tests {
     use super::*;
     use shm_schemas::Flag;
-    use std::f64::consts::FRAC_PI_4;
+    use std::f64::consts::{FRAC_PI_2, FRAC_PI_4};
 
     fn control_loop() -> ControlLoop {
         let reference = Reference::new(&[[-0.018, 0.012], [-0.012, 0.008]], 1e-3, 0.0).unwrap();
@@ -1834,7 +1928,8 @@ mod tests {
         let mut achieved = Vector2::zeros();
         for _ in 0..4 {
             // The magnet follows the field.
-            (_, achieved) = turning.allocate_turning(&position, heading, &force, None);
+            let offset = wrap_angle(heading - turning.field_heading_rad);
+            (_, achieved) = turning.allocate_turning(&position, offset, &force, None, FRAC_PI_4);
             let turned = wrap_angle(turning.field_heading_rad - heading).abs();
             assert!(turned <= 45f64.to_radians() + 1e-9, "turned {turned} rad");
             heading = turning.field_heading_rad;
@@ -1846,7 +1941,8 @@ mod tests {
         // A force the coils make at 45° brings the field back there, step by step.
         let small = Vector2::new(0.0, -2e-5);
         for _ in 0..4 {
-            let (_, made) = turning.allocate_turning(&position, heading, &small, None);
+            let offset = wrap_angle(heading - turning.field_heading_rad);
+            let (_, made) = turning.allocate_turning(&position, offset, &small, None, FRAC_PI_4);
             assert!(
                 (made - small).norm() <= 0.02 * small.norm() + 1e-12,
                 "{made:?}"
@@ -1854,6 +1950,58 @@ mod tests {
             heading = turning.field_heading_rad;
         }
         assert!(wrap_angle(heading - FRAC_PI_4).abs() < 1e-9, "{heading}");
+    }
+
+    #[test]
+    fn the_field_turns_no_faster_than_the_capsule_follows_it() {
+        // 20 cP, 1 mT: the capsule turns into the field with τ ≈ 11 ms, so within one 15° step
+        // it follows sin 15° / τ ≈ 1350°/s, 13.5° per 10 ms command.
+        let mut turning = beyond_loop(|c| c.field_heading_turn_deg = Some(45.0));
+        let rate = turning.max_field_turn_rate_rad_per_s.to_degrees();
+        assert!((1000.0..1800.0).contains(&rate), "{rate} deg/s");
+        let step_ns = 10_000_000;
+        let mut turned_deg = 0.0;
+        for k in 0..100u64 {
+            let t = (k + 1) * step_ns;
+            let budget = turning.field_turn_budget(t);
+            assert!(budget <= 45f64.to_radians() + 1e-12);
+            // Spend every whole 15° step the budget allows, as a turn toward more force would.
+            let step = FIELD_HEADING_STEP_DEG.to_radians();
+            let spent = (budget / step + 1e-9).floor() * step;
+            turning.field_turn_budget_rad = (budget - spent).max(0.0);
+            turned_deg += spent.to_degrees();
+            turning.record_field(t, Some(0.0));
+        }
+        // The first command may spend the full 45°; after that the rate bounds it.
+        assert!(
+            turned_deg <= 45.0 + rate * 1.0 + 1e-6,
+            "turned {turned_deg}° in 1 s"
+        );
+        assert!(
+            turned_deg >= rate * 1.0 - 15.0,
+            "turned only {turned_deg}° in 1 s"
+        );
+    }
+
+    #[test]
+    fn a_frame_taken_while_the_capsule_turns_keeps_the_last_settled_offset() {
+        let mut c = beyond_loop(|c| c.field_heading_turn_deg = Some(45.0));
+        let ms = 1_000_000u64;
+        // The field held 45° for long: a frame's heading measures the offset.
+        c.record_field(0, Some(FRAC_PI_4));
+        let offset = c.magnet_offset(FRAC_PI_4 + 0.02, 100 * ms);
+        assert!((offset - 0.02).abs() < 1e-12, "{offset}");
+        // The field turns to 90° at 110 ms; a frame captured at 115 ms (capsule mid-turn,
+        // 60° say) keeps the settled offset, as does one captured before the turn.
+        c.record_field(110 * ms, Some(FRAC_PI_2));
+        c.field_heading_rad = FRAC_PI_2;
+        let mid_turn = c.magnet_offset(60f64.to_radians(), 115 * ms);
+        assert!((mid_turn - 0.02).abs() < 1e-12, "{mid_turn}");
+        let before_turn = c.magnet_offset(FRAC_PI_4 + 0.02, 105 * ms);
+        assert!((before_turn - 0.02).abs() < 1e-12, "{before_turn}");
+        // Once the field has held 90° for three rotation time constants, frames measure again.
+        let settled = c.magnet_offset(FRAC_PI_2 - 0.01, 110 * ms + c.rotation_settle_ns + ms);
+        assert!((settled + 0.01).abs() < 1e-12, "{settled}");
     }
 
     /// Per-coil gains of the "true" coils in the gain-learning tests (the model's are 1).
