@@ -130,6 +130,14 @@ pub struct ControlConfig {
     /// candidate step (sin 15° over its rotation time constant: about 1350°/s at 20 cP and
     /// 1 mT), so at a fast loop a turn is spread over several commands.
     pub field_heading_turn_deg: Option<f64>,
+    /// Where the fluid moves (the flow service reports flow at the robot), the turning field
+    /// (`field_heading_turn_deg`) heads for the direction of the asked force, averaged over
+    /// 0.1 s, instead of `field_heading_deg`: the magnet is pulled along its axis. Pulled
+    /// sideways, the field gradient that makes the force's sideways part also turns the field
+    /// by that part × distance / (|m| |B|) for every metre the capsule is from where the
+    /// allocation placed it, and with the latency's prediction error (millimetres in a
+    /// 10 cm/s pulsatile jet) the capsule turns and the force with it.
+    pub field_follows_force: bool,
     /// Wall clearance of the paths `millinav ctl goto` plans (A* on the canal mask), mm. The
     /// paper's 5 mm suits its heart phantom; a narrower vessel needs less (vessel8: 3).
     pub replan_clearance_mm: f64,
@@ -164,6 +172,9 @@ impl Default for SlewYieldConfig {
 
 /// Candidate orientation fields are this far apart when the heading may turn.
 const FIELD_HEADING_STEP_DEG: f64 = 15.0;
+/// The asked force's direction a pulling field follows is averaged over this long (s): the
+/// pump's stroke (1–3 Hz) turns it, frame-to-frame noise does not.
+const PULL_FORCE_AVERAGE_S: f64 = 0.1;
 /// A force counts as made when the allocation misses it by at most this fraction.
 const FORCE_MADE_FRACTION: f64 = 0.02;
 /// A turn toward more force must miss the asked force by this fraction less than staying.
@@ -198,6 +209,7 @@ impl Default for ControlConfig {
             slew_yield: None,
             gain_estimation: GainEstimationConfig::default(),
             field_heading_turn_deg: None,
+            field_follows_force: false,
             replan_clearance_mm: fieldmaps::phantom::PLANNER_CLEARANCE_M * 1e3,
         }
     }
@@ -330,6 +342,10 @@ pub struct ControlLoop {
     /// The magnet's heading minus the field's, last measured on a frame captured after the
     /// field had held still for `rotation_settle_ns` (rad).
     magnet_offset_rad: f64,
+    /// The asked force averaged over `PULL_FORCE_AVERAGE_S` (N), and whether the fluid moves
+    /// at the robot: the heading `field_follows_force` pulls along.
+    pull_force_n: Vector2<f64>,
+    fluid_moves: bool,
 }
 
 /// Commands remembered for matching frames to the currents in effect at their capture.
@@ -426,6 +442,8 @@ impl ControlLoop {
             field_turn_budget_rad,
             field_history: VecDeque::with_capacity(ISSUED_HISTORY_LEN),
             magnet_offset_rad: 0.0,
+            pull_force_n: Vector2::zeros(),
+            fluid_moves: false,
         }
     }
 
@@ -628,7 +646,8 @@ impl ControlLoop {
         if self.config.field_heading_turn_deg.is_none() {
             return self.allocate(position, present + magnet_offset, force, slew);
         }
-        let home = self.config.field_heading_deg.to_radians();
+        let pulling = self.pulling_heading(magnet_offset);
+        let home = pulling.unwrap_or(self.config.field_heading_deg.to_radians());
         let miss = |achieved: &Vector2<f64>| (force - achieved).norm();
         let made = force.norm() * FORCE_MADE_FRACTION + 1e-12;
         let offset = magnet_offset;
@@ -636,7 +655,13 @@ impl ControlLoop {
             this.allocate_with_field(position, field_heading + offset, field_heading, force, slew)
         };
         let stay = at(self, present);
-        let at_home = wrap_angle(present - home).abs() < 1e-9;
+        // A pulling heading (off the candidates' grid) is reached within half a step.
+        let home_tolerance = if pulling.is_some() {
+            FIELD_HEADING_STEP_DEG.to_radians() / 2.0
+        } else {
+            1e-9
+        };
+        let at_home = wrap_angle(present - home).abs() < home_tolerance;
         if at_home && miss(&stay.1) <= made {
             return stay;
         }
@@ -664,6 +689,25 @@ impl ControlLoop {
         };
         self.field_heading_rad = heading;
         chosen
+    }
+
+    /// The field heading that pulls the magnet along its axis toward the recent asked force
+    /// (rad; of the two, the one nearer the present field), with `field_follows_force` where
+    /// the fluid moves.
+    fn pulling_heading(&self, magnet_offset: f64) -> Option<f64> {
+        let force = self.pull_force_n;
+        if !(self.config.field_follows_force && self.fluid_moves) || force.norm() == 0.0 {
+            return None;
+        }
+        let along = force.y.atan2(force.x) - magnet_offset;
+        let present = self.field_heading_rad;
+        Some(
+            if wrap_angle(along - present).abs() <= std::f64::consts::FRAC_PI_2 {
+                wrap_angle(along)
+            } else {
+                wrap_angle(along + std::f64::consts::PI)
+            },
+        )
     }
 
     /// The wider step `[control.slew_yield]` allows when the slew-bounded allocation made
@@ -1023,6 +1067,9 @@ impl ControlLoop {
         let slew = slew.as_ref().map(|(previous, step)| (previous, *step));
         let magnet_offset = self.magnet_offset(pose.heading_rad, t_ns);
         let max_turn_rad = self.field_turn_budget(actuation_ns);
+        self.pull_force_n +=
+            (force - self.pull_force_n) * (1.0 - (-dt / PULL_FORCE_AVERAGE_S).exp());
+        self.fluid_moves = flow_mps.norm() > 0.0;
         let field_heading_before = self.field_heading_rad;
         let (mut currents, mut achieved) =
             self.allocate_turning(&position_m, magnet_offset, &force, slew, max_turn_rad);
@@ -1981,6 +2028,45 @@ mod tests {
             turned_deg >= rate * 1.0 - 15.0,
             "turned only {turned_deg}° in 1 s"
         );
+    }
+
+    #[test]
+    fn where_the_fluid_moves_the_field_turns_to_pull_the_magnet_along_its_axis() {
+        let position = Vector2::new(-0.015, 0.01);
+        // A force toward −y, well within reach: a field that only turns for force stays at
+        // 45°; one that follows the force, in moving fluid, turns onto the y axis (to 90°,
+        // the direction along it nearer the present 45°).
+        let force = Vector2::new(0.0, -2e-5);
+        for (follows, moving, turns) in [
+            (false, true, false),
+            (true, false, false),
+            (true, true, true),
+        ] {
+            let mut c = beyond_loop(|c| {
+                c.field_heading_turn_deg = Some(45.0);
+                c.field_follows_force = follows;
+            });
+            c.pull_force_n = force;
+            c.fluid_moves = moving;
+            for _ in 0..4 {
+                c.allocate_turning(&position, 0.0, &force, None, FRAC_PI_4);
+            }
+            let off_axis = wrap_angle(c.field_heading_rad - FRAC_PI_2).abs();
+            let off_axis = off_axis.min(std::f64::consts::PI - off_axis);
+            if turns {
+                assert!(
+                    off_axis <= 7.5f64.to_radians() + 1e-9,
+                    "{}",
+                    c.field_heading_rad
+                );
+            } else {
+                assert!(
+                    wrap_angle(c.field_heading_rad - FRAC_PI_4).abs() < 1e-9,
+                    "follows {follows}, moving {moving}: {}",
+                    c.field_heading_rad
+                );
+            }
+        }
     }
 
     #[test]

@@ -364,11 +364,15 @@ pub fn cell_scenario(base: &Scenario, cell: &Cell) -> anyhow::Result<String> {
         "smc-dob-auto" | "smc-auto" => {
             control.insert("constrained_allocation".into(), true.into());
             control.insert("use_all_coils".into(), true.into());
-            // Beyond the paper too: the orientation field turns for force at the coil limits,
-            // and the coil gains are corrected online from the heading.
+            // Beyond the paper too: the orientation field turns for force at the coil limits
+            // and, where the fluid moves, to pull the magnet along its axis; the coil gains
+            // are corrected online from the heading.
             control
                 .entry("field_heading_turn_deg")
                 .or_insert_with(|| 45.0.into());
+            control
+                .entry("field_follows_force")
+                .or_insert_with(|| true.into());
             let mut estimation = control
                 .get("gain_estimation")
                 .and_then(|v| v.as_table().cloned())
