@@ -738,9 +738,13 @@ impl ControlLoop {
     /// `measured_heading`. A frame taken while the capsule was still turning after the field
     /// (or before the field it shows turned again) would put the magnet where it no longer is,
     /// so such a frame keeps the last offset measured on a settled one. Before any turn is on
-    /// record the measured heading stands as it is.
+    /// record the measured heading stands as it is, and so it does always for a field that
+    /// never turns (`field_heading_turn_deg` unset).
     fn magnet_offset(&mut self, measured_heading: f64, capture_ns: u64) -> f64 {
         let present = self.field_heading_rad;
+        if self.config.field_heading_turn_deg.is_none() {
+            return wrap_angle(measured_heading - present);
+        }
         let window_start = capture_ns.saturating_sub(self.rotation_settle_ns);
         let mut settled = true;
         for (acted_ns, heading) in self.field_history.iter().rev() {
