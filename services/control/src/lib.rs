@@ -633,10 +633,11 @@ impl ControlLoop {
     /// [`Self::allocate`], turning the orientation field by at most `max_turn_rad` when
     /// `field_heading_turn_deg` allows and the coils cannot make `force` at the present
     /// heading (see there). The magnet points `magnet_offset` (rad) from the field, and turns
-    /// with it.
+    /// with it; `measured_heading` is the frame's.
     fn allocate_turning(
         &mut self,
         position: &Vector2<f64>,
+        measured_heading: f64,
         magnet_offset: f64,
         force: &Vector2<f64>,
         slew: Option<(&[f64; MAX_COILS], f64)>,
@@ -644,7 +645,8 @@ impl ControlLoop {
     ) -> ([f64; MAX_COILS], Vector2<f64>) {
         let present = self.field_heading_rad;
         if self.config.field_heading_turn_deg.is_none() {
-            return self.allocate(position, present + magnet_offset, force, slew);
+            // The field never turned: the magnet is where the frame shows it.
+            return self.allocate(position, measured_heading, force, slew);
         }
         let pulling = self.pulling_heading(magnet_offset);
         let home = pulling.unwrap_or(self.config.field_heading_deg.to_radians());
@@ -1075,8 +1077,14 @@ impl ControlLoop {
             (force - self.pull_force_n) * (1.0 - (-dt / PULL_FORCE_AVERAGE_S).exp());
         self.fluid_moves = flow_mps.norm() > 0.0;
         let field_heading_before = self.field_heading_rad;
-        let (mut currents, mut achieved) =
-            self.allocate_turning(&position_m, magnet_offset, &force, slew, max_turn_rad);
+        let (mut currents, mut achieved) = self.allocate_turning(
+            &position_m,
+            pose.heading_rad,
+            magnet_offset,
+            &force,
+            slew,
+            max_turn_rad,
+        );
         self.field_turn_budget_rad = (self.field_turn_budget_rad
             - wrap_angle(self.field_heading_rad - field_heading_before).abs())
         .max(0.0);
@@ -1980,7 +1988,8 @@ mod tests {
         for _ in 0..4 {
             // The magnet follows the field.
             let offset = wrap_angle(heading - turning.field_heading_rad);
-            (_, achieved) = turning.allocate_turning(&position, offset, &force, None, FRAC_PI_4);
+            (_, achieved) =
+                turning.allocate_turning(&position, heading, offset, &force, None, FRAC_PI_4);
             let turned = wrap_angle(turning.field_heading_rad - heading).abs();
             assert!(turned <= 45f64.to_radians() + 1e-9, "turned {turned} rad");
             heading = turning.field_heading_rad;
@@ -1993,7 +2002,8 @@ mod tests {
         let small = Vector2::new(0.0, -2e-5);
         for _ in 0..4 {
             let offset = wrap_angle(heading - turning.field_heading_rad);
-            let (_, made) = turning.allocate_turning(&position, offset, &small, None, FRAC_PI_4);
+            let (_, made) =
+                turning.allocate_turning(&position, heading, offset, &small, None, FRAC_PI_4);
             assert!(
                 (made - small).norm() <= 0.02 * small.norm() + 1e-12,
                 "{made:?}"
@@ -2053,7 +2063,7 @@ mod tests {
             c.pull_force_n = force;
             c.fluid_moves = moving;
             for _ in 0..4 {
-                c.allocate_turning(&position, 0.0, &force, None, FRAC_PI_4);
+                c.allocate_turning(&position, FRAC_PI_4, 0.0, &force, None, FRAC_PI_4);
             }
             let off_axis = wrap_angle(c.field_heading_rad - FRAC_PI_2).abs();
             let off_axis = off_axis.min(std::f64::consts::PI - off_axis);
