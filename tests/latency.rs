@@ -124,7 +124,10 @@ fn fifty_ms_at_100_hz_is_compensated_in_still_fluid_and_7_cm_s_flow() {
 /// are uncertain (`[control.smc] delay_model_error_sigmas`, 2 by default), or as the share of the
 /// motion it measurably missed (`unpredicted_motion_lag`, on by default), whichever is larger.
 /// Without either share the same run (still 4.3 cP fluid, +30 ms, 10 % gain error, seed 2)
-/// rings from the start and is thrown across the canal. The case was found on the twin without
+/// rang from the start and was thrown across the canal; since the orientation field turns no
+/// faster than the capsule follows it (2026-11-28) it rings without being thrown, at 0.58 mm
+/// against 0.06 mm with the share, so the test asks for a 5x gain instead of a loss. The case
+/// was found on the twin without
 /// the scenarios' 6 ms pipeline delay and runs without it: with it, +36 ms in all, seed 2 holds
 /// even without the share (0.24 mm), so the case would no longer tell the two apart.
 #[test]
@@ -159,7 +162,18 @@ fn latency_with_a_coil_gain_error_is_held_in_still_fluid() {
     let held = run_seed(4.3, still, 10.0, 3, true, 2, with_gain_error(None));
     let unshared = run_seed(4.3, still, 10.0, 3, true, 2, with_gain_error(Some(0.0)));
     let bound = paper_smc_dob_rmse_mm(4.3, still).expect("the paper reports this cell");
-    assert_held_only_with(&held, &unshared, bound, "the delay share (the defaults)");
+    assert!(
+        held.completed && held.rmse_mm <= bound,
+        "with the delay share: RMSE {:.2} mm (paper {bound:.2}), completed {}",
+        held.rmse_mm,
+        held.completed
+    );
+    assert!(
+        !unshared.completed || unshared.rmse_mm > 5.0 * held.rmse_mm,
+        "without the delay share the loop did as well (RMSE {:.2} against {:.2} mm)",
+        unshared.rmse_mm,
+        held.rmse_mm
+    );
 }
 
 /// Through the real process set (rendered frames stamped with capture and grab time, UNet
