@@ -442,7 +442,7 @@ impl ControlLoop {
             rotation_settle_ns: ((3.0 * rotation_time_constant_s).min(10.0) * 1e9) as u64,
             max_field_turn_rate_rad_per_s,
             field_turn_budget_rad,
-            field_history: VecDeque::with_capacity(ISSUED_HISTORY_LEN),
+            field_history: VecDeque::with_capacity(FIELD_HISTORY_LEN),
             magnet_offset_rad: 0.0,
             pull_force_n: Vector2::zeros(),
             fluid_moves: false,
@@ -654,9 +654,9 @@ impl ControlLoop {
         let home = pulling.unwrap_or(self.config.field_heading_deg.to_radians());
         let miss = |achieved: &Vector2<f64>| (force - achieved).norm();
         let made = force.norm() * FORCE_MADE_FRACTION + 1e-12;
-        let offset = magnet_offset;
         let at = |this: &Self, field_heading: f64| {
-            this.allocate_with_field(position, field_heading + offset, field_heading, force, slew)
+            let magnet = field_heading + magnet_offset;
+            this.allocate_with_field(position, magnet, field_heading, force, slew)
         };
         let stay = at(self, present);
         // A pulling heading (off the candidates' grid) is reached within half a step.
