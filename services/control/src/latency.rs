@@ -53,10 +53,18 @@ pub struct LatencyConfig {
     /// delay instead of being seen late. None: a steady estimate only.
     pub pulsation_hz: Option<f64>,
     /// Fewest poses per pulsation period for the fitted pulsation to lead a controller's
-    /// disturbance estimate (`StatePredictor::lead_disturbance`): fewer, and the lead is off.
-    /// At the paper's 10 Hz and 3 Hz there are 3.3 (README, "The predicted disturbance leads
-    /// the DOB": off there by default).
+    /// disturbance estimate (`StatePredictor::lead_disturbance`): fewer, and the lead is off
+    /// unless the delay is long (`lead_min_delay_periods`). At the paper's 10 Hz and 3 Hz there
+    /// are 3.3 (README, "The predicted disturbance leads the DOB").
     pub lead_min_poses_per_period: f64,
+    /// With fewer poses per period than `lead_min_poses_per_period`, the fitted pulsation still
+    /// leads when the pose's capture → actuation delay is at least this share of a period.
+    /// A DOB answers a pulsation through its filter (66° late at 3 Hz with η = 0.12 s) and the
+    /// delay (ω·D more); from about a quarter period late on, its answer adds to the push
+    /// instead of cancelling it (at 3 Hz and η = 0.12 s from D ≈ 22 ms, 0.067 period), and the
+    /// fit, however coarse, is the better guess. Measured at 10 Hz (README, "The lead across a
+    /// long delay"): the lead costs at 6 and 21 ms and gains at 36, 66 and 106 ms. 0: always.
+    pub lead_min_delay_periods: f64,
 }
 
 impl Default for LatencyConfig {
@@ -69,6 +77,7 @@ impl Default for LatencyConfig {
             disturbance_time_constant_ms: 100.0,
             pulsation_hz: None,
             lead_min_poses_per_period: 10.0,
+            lead_min_delay_periods: 0.08,
         }
     }
 }
@@ -76,7 +85,7 @@ impl Default for LatencyConfig {
 impl LatencyConfig {
     /// The first field that is out of range, with why.
     pub fn invalid_field(&self) -> Option<(&'static str, String)> {
-        let checks: [(&'static str, f64, bool); 5] = [
+        let checks: [(&'static str, f64, bool); 6] = [
             ("unstamped_delay_ms", self.unstamped_delay_ms, false),
             ("max_pose_age_ms", self.max_pose_age_ms, true),
             ("disturbance_delays", self.disturbance_delays, false),
@@ -90,6 +99,7 @@ impl LatencyConfig {
                 self.lead_min_poses_per_period,
                 false,
             ),
+            ("lead_min_delay_periods", self.lead_min_delay_periods, false),
         ];
         if let Some(hz) = self.pulsation_hz {
             if !(hz.is_finite() && hz > 0.0) {
@@ -332,15 +342,19 @@ impl StatePredictor {
     /// command's hold, about one pose interval): the steady estimate of the last pose plus the
     /// fitted pulsation's mean. None before the second pose, and when the poses come too
     /// seldom to resolve the pulsation (fewer than `lead_min_poses_per_period` per period:
-    /// at the paper's 10 Hz and 3 Hz, 3.3, where without extra latency a fit from so few poses
-    /// leads a controller astray).
+    /// at the paper's 10 Hz and 3 Hz, 3.3, where with little delay a fit from so few poses
+    /// leads a controller astray) unless the last pose is at least `lead_min_delay_periods`
+    /// of a period old at `from_ns`.
     pub fn lead_disturbance(&self, from_ns: u64, span_s: f64) -> Option<Vector2<f64>> {
         let (model, _) = self.last.as_ref()?;
         let span_s = span_s.max(0.0);
         let pulsation = match &self.pulsation {
             Some(fit) => {
                 let period_s = std::f64::consts::TAU / fit.omega_rad_s;
-                if self.pose_interval_s? * self.config.lead_min_poses_per_period > period_s {
+                let sparse =
+                    self.pose_interval_s? * self.config.lead_min_poses_per_period > period_s;
+                let delay_s = from_ns.saturating_sub(model.time_ns) as f64 * 1e-9;
+                if sparse && delay_s < self.config.lead_min_delay_periods * period_s {
                     return None;
                 }
                 fit.mean_force(from_ns as f64 * 1e-9, span_s)
@@ -710,8 +724,13 @@ mod tests {
             }
             predictor
         };
-        // 10 Hz poses: 3.3 per period of a 3 Hz pulsation, too few.
-        assert_eq!(poses(0.1).lead_disturbance(ns(2.0), 0.1), None);
+        // 10 Hz poses: 3.3 per period of a 3 Hz pulsation, too few while the delay is short
+        // (the last pose was captured at 1.9 s)...
+        let sparse = poses(0.1);
+        assert_eq!(sparse.lead_disturbance(ns(1.9), 0.1), None);
+        assert_eq!(sparse.lead_disturbance(ns(1.92), 0.1), None);
+        // ...but a DOB that sees the push a sixth of a period late is beaten by the fit.
+        assert!(sparse.lead_disturbance(ns(1.9 + 1.0 / 18.0), 0.1).is_some());
         // 100 Hz: 33 per period.
         let mut fast = poses(0.01);
         let fit = fast.pulsation.as_mut().unwrap();
@@ -817,6 +836,11 @@ mod tests {
             config.invalid_field().unwrap().0,
             "lead_min_poses_per_period"
         );
+        let config = LatencyConfig {
+            lead_min_delay_periods: -0.1,
+            ..LatencyConfig::default()
+        };
+        assert_eq!(config.invalid_field().unwrap().0, "lead_min_delay_periods");
         assert!(LatencyConfig::default().invalid_field().is_none());
     }
 }
