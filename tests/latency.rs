@@ -133,9 +133,9 @@ fn fifty_ms_at_100_hz_is_compensated_in_still_fluid_and_7_cm_s_flow() {
 /// rang from the start and was thrown across the canal; since the orientation field turns no
 /// faster than the capsule follows it (2026-11-28) it rings without being thrown, at 0.58 mm
 /// against 0.06 mm with the share, so the test asks for a 5x gain instead of a loss. The case
-/// was found on the twin without
-/// the scenarios' 6 ms pipeline delay and runs without it: with it, +36 ms in all, seed 2 holds
-/// even without the share (0.24 mm), so the case would no longer tell the two apart.
+/// was found on the twin without the scenarios' 6 ms pipeline delay and runs without it: with
+/// it, +36 ms in all, seed 2 holds even without the share (0.24 mm), so the case would no
+/// longer tell the two apart.
 #[test]
 fn latency_with_a_coil_gain_error_is_held_in_still_fluid() {
     let with_gain_error = |delay_model_error_sigmas: Option<f64>| {
