@@ -161,40 +161,146 @@ pub struct PixelMap {
 }
 
 impl PixelMap {
-    /// Samples `source` (`source_width` × `source_height`, `channels` interleaved bytes per
-    /// pixel, rows `source_stride` bytes apart) bilinearly into `out` (this map's size, packed);
-    /// outside the source: black. The same sampling as OpenCV's INTER_LINEAR remap.
-    pub fn remap(
+    /// The bilinear taps of this map for a source of `source_width` × `source_height` pixels,
+    /// `channels` interleaved bytes each, rows `source_stride` bytes apart: computed once, so
+    /// every frame only gathers and blends (a 1280 × 1024 raw frame every 10 ms).
+    pub fn sampler(
         &self,
-        source: &[u8],
         source_width: usize,
         source_height: usize,
         source_stride: usize,
         channels: usize,
-        out: &mut [u8],
-    ) {
-        let at =
-            |c: usize, r: usize, k: usize| f32::from(source[r * source_stride + c * channels + k]);
-        for (i, (&u, &v)) in self.cols.iter().zip(&self.rows).enumerate() {
-            let px = &mut out[i * channels..(i + 1) * channels];
-            let (c0, r0) = (u.floor(), v.floor());
-            if !(c0 >= 0.0
-                && r0 >= 0.0
-                && (c0 as usize) + 1 < source_width
-                && (r0 as usize) + 1 < source_height)
-            {
+    ) -> BilinearSampler {
+        let taps = self
+            .cols
+            .iter()
+            .zip(&self.rows)
+            .map(|(&u, &v)| {
+                let (c0, r0) = (u.floor(), v.floor());
+                // NaN fails every comparison: a pixel the lens maps nowhere is outside.
+                let inside = c0 >= 0.0
+                    && r0 >= 0.0
+                    && (c0 as usize) + 1 < source_width
+                    && (r0 as usize) + 1 < source_height;
+                if !inside {
+                    return Tap::OUTSIDE;
+                }
+                let offset = r0 as usize * source_stride + c0 as usize * channels;
+                let weight = |fraction: f32| (fraction * WEIGHT_ONE as f32).round() as u16;
+                Tap {
+                    offset: u32::try_from(offset).unwrap_or(u32::MAX),
+                    col_weight: weight(u - c0),
+                    row_weight: weight(v - r0),
+                }
+            })
+            .collect();
+        BilinearSampler {
+            taps,
+            source_stride,
+            channels,
+            source_len: source_height.saturating_sub(1) * source_stride + source_width * channels,
+        }
+    }
+}
+
+/// Fixed-point weight of a whole pixel: fractions are sampled in 1/256 (OpenCV's INTER_LINEAR
+/// remap uses 1/32).
+const WEIGHT_ONE: u32 = 256;
+
+/// One output pixel's source: the byte offset of its top-left neighbour and its fractional
+/// position towards the right and lower neighbours.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Tap {
+    offset: u32,
+    col_weight: u16,
+    row_weight: u16,
+}
+
+impl Tap {
+    const OUTSIDE: Tap = Tap {
+        offset: u32::MAX,
+        col_weight: 0,
+        row_weight: 0,
+    };
+}
+
+/// A [`PixelMap`] compiled for one source layout ([`PixelMap::sampler`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct BilinearSampler {
+    taps: Vec<Tap>,
+    source_stride: usize,
+    channels: usize,
+    source_len: usize,
+}
+
+impl BilinearSampler {
+    /// Samples `source` bilinearly into `out` (the map's size, `channels` bytes per pixel,
+    /// packed); outside the source: black. The same sampling as OpenCV's INTER_LINEAR remap.
+    /// A source shorter than the layout the sampler was built for reads as black.
+    pub fn remap(&self, source: &[u8], out: &mut [u8]) {
+        if source.len() < self.source_len {
+            out.fill(0);
+            return;
+        }
+        match self.channels {
+            1 => self.remap_channels::<1>(source, out),
+            3 => self.remap_channels::<3>(source, out),
+            4 => self.remap_channels::<4>(source, out),
+            _ => self.remap_any(source, out),
+        }
+    }
+
+    /// The loop for a channel count known at compile time (the per-pixel work unrolls).
+    fn remap_channels<const C: usize>(&self, source: &[u8], out: &mut [u8]) {
+        let stride = self.source_stride;
+        for (tap, px) in self.taps.iter().zip(out.chunks_exact_mut(C)) {
+            let base = tap.offset as usize;
+            let (Some(top), Some(bottom)) = (
+                source.get(base..base + 2 * C),
+                source.get(base + stride..base + stride + 2 * C),
+            ) else {
                 px.fill(0);
                 continue;
-            }
-            let (fc, fr) = (u - c0, v - r0);
-            let (c0, r0) = (c0 as usize, r0 as usize);
-            for (k, p) in px.iter_mut().enumerate() {
-                let top = at(c0, r0, k) * (1.0 - fc) + at(c0 + 1, r0, k) * fc;
-                let bottom = at(c0, r0 + 1, k) * (1.0 - fc) + at(c0 + 1, r0 + 1, k) * fc;
-                *p = (top * (1.0 - fr) + bottom * fr).round().clamp(0.0, 255.0) as u8;
+            };
+            let (wc, wr) = (u32::from(tap.col_weight), u32::from(tap.row_weight));
+            for k in 0..C {
+                px[k] = blend([top[k], top[k + C], bottom[k], bottom[k + C]], wc, wr);
             }
         }
     }
+
+    fn remap_any(&self, source: &[u8], out: &mut [u8]) {
+        let (channels, stride) = (self.channels, self.source_stride);
+        for (tap, px) in self.taps.iter().zip(out.chunks_exact_mut(channels)) {
+            let base = tap.offset as usize;
+            let (Some(top), Some(bottom)) = (
+                source.get(base..base + 2 * channels),
+                source.get(base + stride..base + stride + 2 * channels),
+            ) else {
+                px.fill(0);
+                continue;
+            };
+            let (wc, wr) = (u32::from(tap.col_weight), u32::from(tap.row_weight));
+            for (k, p) in px.iter_mut().enumerate() {
+                *p = blend(
+                    [top[k], top[k + channels], bottom[k], bottom[k + channels]],
+                    wc,
+                    wr,
+                );
+            }
+        }
+    }
+}
+
+/// Bilinear blend of a pixel's four neighbours (top-left, top-right, bottom-left, bottom-right)
+/// with fixed-point weights towards the right (`wc`) and down (`wr`), rounded.
+#[inline]
+fn blend([top_left, top_right, bottom_left, bottom_right]: [u8; 4], wc: u32, wr: u32) -> u8 {
+    let top = u32::from(top_left) * (WEIGHT_ONE - wc) + u32::from(top_right) * wc;
+    let bottom = u32::from(bottom_left) * (WEIGHT_ONE - wc) + u32::from(bottom_right) * wc;
+    let value = (top * (WEIGHT_ONE - wr) + bottom * wr + WEIGHT_ONE * WEIGHT_ONE / 2)
+        / (WEIGHT_ONE * WEIGHT_ONE);
+    value.min(255) as u8
 }
 
 #[cfg(test)]
@@ -272,7 +378,50 @@ mod tests {
             rows: vec![0.5, 0.0],
         };
         let mut out = [9u8; 2];
-        map.remap(&source, 2, 2, 2, 1, &mut out);
+        map.sampler(2, 2, 2, 1).remap(&source, &mut out);
         assert_eq!(out, [139, 0]);
+    }
+
+    #[test]
+    fn fixed_point_remap_matches_float_bilinear_sampling() {
+        // A 3 × 3 RGB source in a padded stride, sampled at fractions that are not powers of two.
+        let (w, h, channels, stride) = (3usize, 3usize, 3usize, 10usize);
+        let source: Vec<u8> = (0..h * stride)
+            .map(|i| ((i * 37 + 11) % 256) as u8)
+            .collect();
+        let points = [
+            (0.1f32, 0.7f32),
+            (1.33, 0.2),
+            (0.9, 1.9),
+            (1.999, 1.001),
+            (0.0, 0.0),
+        ];
+        let map = PixelMap {
+            width: points.len(),
+            height: 1,
+            cols: points.iter().map(|p| p.0).collect(),
+            rows: points.iter().map(|p| p.1).collect(),
+        };
+        let mut out = vec![0u8; points.len() * channels];
+        map.sampler(w, h, stride, channels).remap(&source, &mut out);
+        for (i, &(u, v)) in points.iter().enumerate() {
+            let (c0, r0) = (u.floor() as usize, v.floor() as usize);
+            let (fc, fr) = (u - u.floor(), v - v.floor());
+            for k in 0..channels {
+                let at = |c: usize, r: usize| f32::from(source[r * stride + c * channels + k]);
+                let top = at(c0, r0) * (1.0 - fc) + at(c0 + 1, r0) * fc;
+                let bottom = at(c0, r0 + 1) * (1.0 - fc) + at(c0 + 1, r0 + 1) * fc;
+                let expected = top * (1.0 - fr) + bottom * fr;
+                let got = f32::from(out[i * channels + k]);
+                assert!(
+                    (got - expected).abs() <= 1.0,
+                    "point {i} channel {k}: {got} vs {expected}"
+                );
+            }
+        }
+        // A source shorter than the layout reads as black rather than out of bounds.
+        map.sampler(w, h, stride, channels)
+            .remap(&source[..5], &mut out);
+        assert!(out.iter().all(|&b| b == 0));
     }
 }

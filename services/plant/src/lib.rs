@@ -181,7 +181,10 @@ pub struct PlantSetup {
 
 /// The twin's real camera: for every raw pixel, the canonical-view pixel it sees.
 struct RawView {
-    map: fieldmaps::lens::PixelMap,
+    /// Raw frame size (width, height) in pixels.
+    size: (usize, usize),
+    /// The raw view's map, compiled for the canonical render's layout.
+    sampler: fieldmaps::lens::BilinearSampler,
     /// The canonical render the raw frame is sampled from.
     scratch: std::cell::RefCell<Vec<u8>>,
 }
@@ -200,10 +203,12 @@ impl RawView {
         let map = calibration
             .raw_view_map(&view)
             .map_err(|e| anyhow::anyhow!("{}: [camera.calibration]: {e}", rig.path.display()))?;
-        let canonical = view.width_px as usize * view.height_px as usize * FRAME_CHANNELS as usize;
+        let channels = FRAME_CHANNELS as usize;
+        let (width, height) = (view.width_px as usize, view.height_px as usize);
         Ok(Some(Self {
-            map,
-            scratch: std::cell::RefCell::new(vec![0; canonical]),
+            size: (map.width, map.height),
+            sampler: map.sampler(width, height, width * channels, channels),
+            scratch: std::cell::RefCell::new(vec![0; width * height * channels]),
         }))
     }
 }
@@ -503,7 +508,7 @@ impl<'s> Twin<'s> {
         fault_signals::install().context("installing the link-fault signal handlers")?;
         let lens = RawView::of(&rig)?;
         let frame_bytes = match &lens {
-            Some(view) => view.map.width * view.map.height * FRAME_CHANNELS as usize,
+            Some(view) => view.size.0 * view.size.1 * FRAME_CHANNELS as usize,
             None => {
                 geometry.width_px as usize * geometry.height_px as usize * FRAME_CHANNELS as usize
             }
@@ -619,7 +624,7 @@ impl<'s> Twin<'s> {
                 canonical.copy_from_slice(camera.frame_background(seq));
                 camera.finish_frame(&mut canonical, &capsule, seq, state.time_s, &mut rng, None);
                 let channels = FRAME_CHANNELS as usize;
-                let (w, h) = (view.map.width, view.map.height);
+                let (w, h) = view.size;
                 let raw_header = FrameHeader {
                     width: w as u32,
                     height: h as u32,
@@ -628,14 +633,7 @@ impl<'s> Twin<'s> {
                 };
                 self.frames
                     .send_in_place(raw_header, w * h * channels, |out| {
-                        view.map.remap(
-                            &canonical,
-                            geometry.width_px as usize,
-                            geometry.height_px as usize,
-                            geometry.width_px as usize * channels,
-                            channels,
-                            out,
-                        )
+                        view.sampler.remap(&canonical, out)
                     })?;
             }
         }

@@ -74,5 +74,31 @@ fn localizers(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, controllers, localizers);
+/// The twin's raw camera: the second rig's 1280 × 1024 RGB frame sampled from its canonical
+/// render through the lens, every lockstep frame (the plant's largest per-frame cost).
+fn raw_view(c: &mut Criterion) {
+    let path = fieldmaps::data_root().join("fieldmaps/rigs/vessel8.toml");
+    let Ok(rig) = fieldmaps::rigfile::Rig::load(&path) else {
+        return;
+    };
+    let Some(calibration) = rig.camera.calibration else {
+        return;
+    };
+    let view = rig.camera.geometry;
+    let Ok(map) = calibration.raw_view_map(&view) else {
+        return;
+    };
+    let (w, h, channels) = (view.width_px as usize, view.height_px as usize, 3);
+    let canonical: Vec<u8> = (0..w * h * channels).map(|i| (i % 251) as u8).collect();
+    let sampler = map.sampler(w, h, w * channels, channels);
+    let mut raw = vec![0u8; map.width * map.height * channels];
+    let mut group = c.benchmark_group("plant_slow");
+    group.sample_size(20);
+    group.bench_function("raw_view_remap", |b| {
+        b.iter(|| sampler.remap(&canonical, &mut raw))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, controllers, localizers, raw_view);
 criterion_main!(benches);
