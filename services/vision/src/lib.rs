@@ -44,6 +44,11 @@ pub struct VisionConfig {
     pub onnxruntime: Option<PathBuf>,
     /// Side of the square search region around the last detection (mm), classical path.
     pub roi_mm: f64,
+    /// The capsule's length in the model's training crops, in model-input pixels: the UNet
+    /// crops this camera's frames so the capsule reaches it at that size. Default: the
+    /// committed model's, [`COMMITTED_MODEL_CAPSULE_LENGTH_PX`]; a model trained on another
+    /// rig (`unet-dataset --rig`) states its own (`unet-dataset` prints it).
+    pub model_capsule_length_px: f64,
     /// Log the camera image (with the segmentation and keypoints) every this many frames; 0
     /// never.
     pub image_log_every: u64,
@@ -60,12 +65,18 @@ impl Default for VisionConfig {
             model: PathBuf::from(DEFAULT_MODEL),
             onnxruntime: None,
             roi_mm: 20.0,
+            model_capsule_length_px: COMMITTED_MODEL_CAPSULE_LENGTH_PX,
             image_log_every: 25,
             image_log_downsample: 1,
             image_log_jpeg_quality: 90,
         }
     }
 }
+
+/// The capsule's length in the committed model's training crops (model-input pixels): the
+/// paper rig's 7.40 mm capsule at 1020 px / 92 mm, 2x downsampled (`unet-dataset` on
+/// `fieldmaps/rigs/paper.toml`, `tools/unet/model/train_log.txt`).
+pub const COMMITTED_MODEL_CAPSULE_LENGTH_PX: f64 = 7.40 / (92.0 / 1020.0) / 2.0;
 
 /// The committed model the service runs, relative to the workspace root: `FLOAT_MODEL`
 /// quantized to int8 with 7-bit weights (tools/unet/quantize.py; keypoint head kept in float):
@@ -114,12 +125,14 @@ impl Pipeline {
             LocalizerKind::Unet => {
                 let runtime = find_onnxruntime(config.onnxruntime.as_deref())?;
                 let model = resolve_model(config, scenario);
-                Some(UnetLocalizer::load(
+                let unet = UnetLocalizer::load(
                     &model,
                     &runtime,
                     size.length_m * 1e3,
                     rig.camera.geometry.mm_per_px,
-                )?)
+                )?
+                .with_model_scale(config.model_capsule_length_px);
+                Some(unet)
             }
         };
         Ok(Self {
@@ -128,6 +141,11 @@ impl Pipeline {
             unet,
             roi_mm: config.roi_mm,
         })
+    }
+
+    /// Frame pixels per model-input pixel of the UNet's crops (None: classical only).
+    pub fn unet_crop_scale(&self) -> Option<f64> {
+        self.unet.as_ref().map(UnetLocalizer::scale)
     }
 
     /// Localizes the capsule in one RGB frame.
@@ -318,6 +336,13 @@ pub fn prepare(scenario: &Scenario) -> Result<VisionSetup, ConfigError> {
             config.roi_mm
         )));
     }
+    if !(config.model_capsule_length_px.is_finite() && config.model_capsule_length_px > 0.0) {
+        return Err(ConfigError::new(format!(
+            "{} must be > 0 (model-input pixels), got {}",
+            field("model_capsule_length_px"),
+            config.model_capsule_length_px
+        )));
+    }
     if config.image_log_downsample == 0 || config.image_log_jpeg_quality > 100 {
         return Err(ConfigError::new(format!(
             "{} must be >= 1 and {} between 0 (raw) and 100, got {} and {}",
@@ -359,7 +384,15 @@ pub fn run(rt: &mut Runtime, _scenario: &Scenario, setup: VisionSetup) -> anyhow
     } = setup;
     let frames = FrameInbox::new(&rt.node)?;
     let poses = Outbox::<Pose>::new(&rt.node, services::POSE)?;
-    tracing::info!(localizer = ?config.localizer, "vision ready");
+    match pipeline.unet_crop_scale() {
+        Some(scale) if scale != millinav_roi::roi::DOWNSAMPLE as f64 => tracing::info!(
+            localizer = ?config.localizer,
+            frame_px_per_model_px = scale,
+            "vision ready; this camera shows the capsule at another size than the model's \
+             training crops, so the UNet's crops are resampled to the model's scale"
+        ),
+        _ => tracing::info!(localizer = ?config.localizer, "vision ready"),
+    }
     let mut lost_frames: u64 = 0;
 
     let mut service_loop = ServiceLoop::new();
@@ -513,5 +546,12 @@ mod tests {
         let (scenario, _) = scenario_with("roi", "localizer = \"classical\"\nroi_mm = -1.0");
         let error = check_config(&scenario).unwrap_err().to_string();
         assert!(error.contains("[vision] roi_mm"), "{error}");
+
+        let (scenario, _) = scenario_with("scale", "model_capsule_length_px = 0.0");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[vision] model_capsule_length_px"),
+            "{error}"
+        );
     }
 }

@@ -4,7 +4,10 @@
 
 use std::path::{Path, PathBuf};
 
-use millinav_roi::roi::{extract_rgb, to_chw_f32, Crop, INPUT_PX};
+use millinav_roi::roi::{
+    extract_rgb, extract_rgb_scaled, to_chw_f32, Crop, CropGeometry, ScaledCrop, DOWNSAMPLE,
+    INPUT_PX,
+};
 use ort::session::Session;
 use ort::value::TensorRef;
 
@@ -95,7 +98,16 @@ pub struct UnetLocalizer {
     input: Vec<f32>,
     /// Capsule length in model-input pixels, to reject implausible keypoints.
     expected_length_px: f64,
+    /// Capsule length in frame pixels (this camera).
+    frame_length_px: f64,
+    /// Frame pixels per model-input pixel: `DOWNSAMPLE` (the training crops) unless
+    /// [`Self::with_model_scale`] found this camera's capsule at another size.
+    scale: f64,
 }
+
+/// Within this fraction of the training scale the crop is the training crop itself (the model
+/// learnt ±12 % of capsule scale; this keeps the paper rig's crops bit for bit).
+const SCALE_TOLERANCE: f64 = 0.05;
 
 /// Raw model outputs for one crop (model-input pixels).
 #[derive(Debug, Clone)]
@@ -158,10 +170,32 @@ impl UnetLocalizer {
             session,
             rgb: Vec::new(),
             input: Vec::new(),
-            expected_length_px: capsule_length_mm
-                / mm_per_px
-                / millinav_roi::roi::DOWNSAMPLE as f64,
+            expected_length_px: capsule_length_mm / mm_per_px / DOWNSAMPLE as f64,
+            frame_length_px: capsule_length_mm / mm_per_px,
+            scale: DOWNSAMPLE as f64,
         })
+    }
+
+    /// Crops so the capsule reaches the model at `model_capsule_length_px` (its length in the
+    /// training crops, model-input pixels): a camera that shows it larger or smaller than the
+    /// training camera did gets a crop of another size, resampled to the model input.
+    pub fn with_model_scale(mut self, model_capsule_length_px: f64) -> Self {
+        let scale = self.frame_length_px / model_capsule_length_px;
+        if scale.is_finite() && scale > 0.0 {
+            let training = DOWNSAMPLE as f64;
+            self.scale = if (scale / training - 1.0).abs() <= SCALE_TOLERANCE {
+                training
+            } else {
+                scale
+            };
+            self.expected_length_px = self.frame_length_px / self.scale;
+        }
+        self
+    }
+
+    /// Frame pixels per model-input pixel this localizer crops at.
+    pub fn scale(&self) -> f64 {
+        self.scale
     }
 
     /// Runs the model on an already preprocessed 96x96 RGB crop.
@@ -204,21 +238,34 @@ impl UnetLocalizer {
         height: usize,
         predicted_px: (f64, f64),
     ) -> Result<Detection, LocalizeError> {
-        let crop = Crop::around(predicted_px.0, predicted_px.1, width, height)
-            .ok_or(LocalizeError::NotFound)?;
         let mut rgb = std::mem::take(&mut self.rgb);
-        extract_rgb(frame, width, &crop, &mut rgb);
-        let out = self.infer(&rgb);
-        self.rgb = rgb;
-        let out = out?;
-        detection_from_output(&out, &crop, self.expected_length_px)
+        let (col, row) = predicted_px;
+        if self.scale == DOWNSAMPLE as f64 {
+            let Some(crop) = Crop::around(col, row, width, height) else {
+                self.rgb = rgb;
+                return Err(LocalizeError::NotFound);
+            };
+            extract_rgb(frame, width, &crop, &mut rgb);
+            let out = self.infer(&rgb);
+            self.rgb = rgb;
+            detection_from_output(&out?, &crop, self.expected_length_px)
+        } else {
+            let Some(crop) = ScaledCrop::around(col, row, width, height, self.scale) else {
+                self.rgb = rgb;
+                return Err(LocalizeError::NotFound);
+            };
+            extract_rgb_scaled(frame, width, height, &crop, &mut rgb);
+            let out = self.infer(&rgb);
+            self.rgb = rgb;
+            detection_from_output(&out?, &crop, self.expected_length_px)
+        }
     }
 }
 
 /// Turns model outputs into a detection in frame pixels, or says why there is none.
 pub fn detection_from_output(
     out: &UnetOutput,
-    crop: &Crop,
+    crop: &impl CropGeometry,
     expected_length_px: f64,
 ) -> Result<Detection, LocalizeError> {
     if out.presence_logit < 0.0 {
@@ -249,7 +296,7 @@ pub fn detection_from_output(
         return Err(LocalizeError::Ambiguous);
     }
     let to_frame = |p: (f64, f64)| crop.input_to_frame(p.0, p.1);
-    let f = millinav_roi::roi::DOWNSAMPLE as f64;
+    let f = crop.frame_px_per_input_px();
     let confidence = 1.0 / (1.0 + (-out.presence_logit).exp());
     Ok(Detection {
         centroid_px: to_frame(centroid),

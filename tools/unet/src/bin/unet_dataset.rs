@@ -206,6 +206,14 @@ fn main() -> anyhow::Result<()> {
             .with_context(|| format!("writing {}", dir.display()))?;
         eprintln!("{name}: {} samples in {}", split.len(), dir.display());
     }
+    // What vision must know to crop another camera's frames at this model's scale.
+    let model_length_px = rig.robot.length_m * 1e3
+        / rig.camera.geometry.mm_per_px
+        / millinav_roi::roi::DOWNSAMPLE as f64;
+    eprintln!(
+        "the capsule is {model_length_px:.2} model-input px long in these crops: a model \
+         trained on them runs with [vision] model_capsule_length_px = {model_length_px:.2}"
+    );
     Ok(())
 }
 
