@@ -242,35 +242,18 @@ impl BilinearSampler {
             out.fill(0);
             return;
         }
+        // A literal channel count lets the compiler unroll the per-pixel work.
         match self.channels {
-            1 => self.remap_channels::<1>(source, out),
-            3 => self.remap_channels::<3>(source, out),
-            4 => self.remap_channels::<4>(source, out),
-            _ => self.remap_any(source, out),
+            1 => self.remap_with(source, out, 1),
+            3 => self.remap_with(source, out, 3),
+            4 => self.remap_with(source, out, 4),
+            channels => self.remap_with(source, out, channels),
         }
     }
 
-    /// The loop for a channel count known at compile time (the per-pixel work unrolls).
-    fn remap_channels<const C: usize>(&self, source: &[u8], out: &mut [u8]) {
+    #[inline(always)]
+    fn remap_with(&self, source: &[u8], out: &mut [u8], channels: usize) {
         let stride = self.source_stride;
-        for (tap, px) in self.taps.iter().zip(out.chunks_exact_mut(C)) {
-            let base = tap.offset as usize;
-            let (Some(top), Some(bottom)) = (
-                source.get(base..base + 2 * C),
-                source.get(base + stride..base + stride + 2 * C),
-            ) else {
-                px.fill(0);
-                continue;
-            };
-            let (wc, wr) = (u32::from(tap.col_weight), u32::from(tap.row_weight));
-            for k in 0..C {
-                px[k] = blend([top[k], top[k + C], bottom[k], bottom[k + C]], wc, wr);
-            }
-        }
-    }
-
-    fn remap_any(&self, source: &[u8], out: &mut [u8]) {
-        let (channels, stride) = (self.channels, self.source_stride);
         for (tap, px) in self.taps.iter().zip(out.chunks_exact_mut(channels)) {
             let base = tap.offset as usize;
             let (Some(top), Some(bottom)) = (

@@ -73,10 +73,10 @@ impl Default for VisionConfig {
     }
 }
 
-/// The capsule's length in the committed model's training crops (model-input pixels): the
-/// paper rig's 7.40 mm capsule at 1020 px / 92 mm, 2x downsampled (`unet-dataset` on
-/// `fieldmaps/rigs/paper.toml`, `tools/unet/model/train_log.txt`).
-pub const COMMITTED_MODEL_CAPSULE_LENGTH_PX: f64 = 7.40 / (92.0 / 1020.0) / 2.0;
+/// The capsule's length in the committed model's training crops (model-input pixels): a
+/// property of the model, as `unet-dataset` prints it for the crops it was trained on
+/// (`scripts/train_unet.sh` renders them without `--rig`, i.e. on the paper rig's file).
+pub const COMMITTED_MODEL_CAPSULE_LENGTH_PX: f64 = 41.02;
 
 /// The committed model the service runs, relative to the workspace root: `FLOAT_MODEL`
 /// quantized to int8 with 7-bit weights (tools/unet/quantize.py; keypoint head kept in float):
