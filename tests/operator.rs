@@ -60,6 +60,37 @@ fn mean_seen(run: &RunSet, window_s: f64) -> Option<(f64, f64, f64)> {
     Some((x, y, last_s))
 }
 
+/// Waits until control's log reaches scenario time `at_s` and returns its rows; `None` when
+/// it does not within a minute of wall time (control stopped). Lockstep runs at whatever pace
+/// the machine allows, so tests wait on scenario time, never on the wall clock.
+fn rows_at(run: &RunSet, at_s: f64) -> Option<Vec<ControlRow>> {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let rows = rows_so_far::<ControlRow>(&run.run_dir);
+        if rows.last().is_some_and(|r| r.time_s >= at_s) {
+            return Some(rows);
+        }
+        if Instant::now() > deadline {
+            return None;
+        }
+        wait(0.1);
+    }
+}
+
+/// The time of control's last logged row (s); control flushes its log every half second of
+/// scenario time, so its decision for a request just answered lies at most that far ahead.
+fn log_time(run: &RunSet) -> f64 {
+    rows_so_far::<ControlRow>(&run.run_dir)
+        .last()
+        .map_or(0.0, |r| r.time_s)
+}
+
+/// `mean_seen` once control's log reaches scenario time `at_s`.
+fn mean_seen_after(run: &RunSet, window_s: f64, at_s: f64) -> Option<(f64, f64, f64)> {
+    rows_at(run, at_s)?;
+    mean_seen(run, window_s)
+}
+
 fn wait(s: f64) {
     std::thread::sleep(Duration::from_secs_f64(s));
 }
@@ -95,12 +126,9 @@ fn the_operator_drives_a_running_twin() {
         out.contains("holding") && out.contains("state: paused"),
         "{out}"
     );
-    wait(1.5);
-    let a = mean_seen(&run, 0.5).expect("control rows");
-    wait(2.0);
-    let b = mean_seen(&run, 0.5).expect("control rows");
+    let a = mean_seen_after(&run, 0.5, log_time(&run) + 1.5).expect("control kept running");
+    let b = mean_seen_after(&run, 0.5, a.2 + 2.0).expect("control kept running");
     let drift_mm = (b.0 - a.0).hypot(b.1 - a.1) * 1e3;
-    assert!(b.2 > a.2 + 1.0, "control kept running: {a:?} {b:?}");
     assert!(drift_mm < 0.3, "paused robot moved {drift_mm:.3} mm");
 
     // Goto: a new A* path from the current pose, and the robot gets there.
@@ -110,18 +138,19 @@ fn the_operator_drives_a_running_twin() {
         out.contains("following") && out.contains("state: tracking"),
         "{out}"
     );
-    let deadline = Instant::now() + Duration::from_secs(40);
+    // 30 s of scenario time to get there; a minute of wall time without a new row is a stall.
+    let give_up_s = log_time(&run) + 30.0;
     let arrived = loop {
         let seen = last_seen(&run).expect("control rows");
         let off_mm = (seen.measured_x_m + 6e-3).hypot(seen.measured_y_m + 6e-3) * 1e3;
         if off_mm < 1.0 {
             break true;
         }
-        if Instant::now() > deadline {
+        if seen.time_s > give_up_s {
             println!("last seen {seen:?}, {off_mm:.2} mm from the goal");
             break false;
         }
-        wait(0.5);
+        rows_at(&run, seen.time_s + 0.5).expect("control kept logging");
     };
     assert!(arrived, "the robot did not reach the goto goal");
 
@@ -129,8 +158,7 @@ fn the_operator_drives_a_running_twin() {
     let (code, out) = ctl(&run, &["estop"]);
     assert_eq!(code, 0, "{out}");
     assert!(out.contains("emergency-stopped"), "{out}");
-    wait(1.5);
-    let after: Vec<ControlRow> = rows_so_far::<ControlRow>(&run.run_dir);
+    let after = rows_at(&run, log_time(&run) + 1.5).expect("control kept logging");
     let last = after.last().expect("control rows");
     assert_eq!(last.mode, shm_schemas::ControlMode::Safe as u32, "{last:?}");
     assert_eq!(last.max_abs_current_a, 0.0, "{last:?}");
@@ -189,11 +217,9 @@ fn a_session_starts_disarmed_runs_past_its_duration_and_ends_on_ctl_stop() {
     assert_eq!(last.max_abs_current_a, 0.0);
     let (code, out) = ctl(&run, &["arm"]);
     assert_eq!(code, 0, "{out}");
-    wait(1.0);
-    let last = rows_so_far::<ControlRow>(&run.run_dir)
-        .last()
-        .cloned()
-        .expect("control rows");
+    let last = rows_at(&run, log_time(&run) + 1.0)
+        .and_then(|rows| rows.last().cloned())
+        .expect("control kept logging");
     assert_ne!(
         last.mode,
         shm_schemas::ControlMode::Safe as u32,
