@@ -365,6 +365,24 @@ pub fn prepare(scenario: &Scenario) -> Result<VisionSetup, ConfigError> {
     }
     let rig = scenario.rig()?;
     let pipeline = Pipeline::new(&config, scenario, &rig).config_context(field("localizer"))?;
+    if let Some(scale) = pipeline.unet_crop_scale() {
+        // A crop that does not fit in the frame gives no pose at all; say why at start-up.
+        let side_px = millinav_roi::roi::INPUT_PX as f64 * scale;
+        let geometry = rig.camera.geometry;
+        if side_px > f64::from(geometry.width_px.min(geometry.height_px)) {
+            return Err(ConfigError::new(format!(
+                "{}: the UNet's crop would be {side_px:.0} frame px square (the capsule is {:.1} px \
+                 long in the rig's {} x {} px camera, {} px in the model's training crops), \
+                 larger than the frame; set it to what the model was trained on, train one \
+                 for this camera (`unet-dataset --rig`), or use localizer = \"classical\"",
+                field("model_capsule_length_px"),
+                CapsuleSize::of(&rig.robot).length_m * 1e3 / geometry.mm_per_px,
+                geometry.width_px,
+                geometry.height_px,
+                config.model_capsule_length_px,
+            )));
+        }
+    }
     Ok(VisionSetup { config, pipeline })
 }
 
@@ -551,6 +569,16 @@ mod tests {
         let error = check_config(&scenario).unwrap_err().to_string();
         assert!(
             error.contains("[vision] model_capsule_length_px"),
+            "{error}"
+        );
+
+        // A model trained on a capsule 2 px long would need crops 41x the paper rig's 82 px
+        // capsule: larger than the frame, refused at start-up rather than never finding it.
+        let (scenario, _) = scenario_with("huge", "model_capsule_length_px = 2.0");
+        let error = check_config(&scenario).unwrap_err().to_string();
+        assert!(
+            error.contains("[vision] model_capsule_length_px")
+                && error.contains("larger than the frame"),
             "{error}"
         );
     }
