@@ -47,6 +47,11 @@ pub struct LatencyConfig {
     /// delays (ms; with `disturbance_delays = 0`, its time constant). 0 with
     /// `disturbance_delays = 0` turns it off (plain Smith predictor).
     pub disturbance_time_constant_ms: f64,
+    /// Candidate values of `disturbance_delays` to choose from while running: each predicts,
+    /// and the one whose predictions the later poses confirmed best feeds the controller
+    /// (`crate::predictor_bank`; README, "Choosing the disturbance bandwidth from the data").
+    /// Empty: `disturbance_delays` alone.
+    pub disturbance_delays_candidates: Vec<f64>,
     /// Pulsation rate of the flow (Hz; the pump's stroke rate, which the lab sets): the
     /// disturbance estimate then also carries a sinusoid at this rate (amplitude and phase
     /// learned by recursive least squares), so that a pulsatile push is predicted across the
@@ -75,6 +80,7 @@ impl Default for LatencyConfig {
             max_pose_age_ms: 500.0,
             disturbance_delays: 4.0,
             disturbance_time_constant_ms: 100.0,
+            disturbance_delays_candidates: Vec::new(),
             pulsation_hz: None,
             lead_min_poses_per_period: 10.0,
             lead_min_delay_periods: 0.08,
@@ -101,6 +107,16 @@ impl LatencyConfig {
             ),
             ("lead_min_delay_periods", self.lead_min_delay_periods, false),
         ];
+        if let Some(bad) = self
+            .disturbance_delays_candidates
+            .iter()
+            .find(|d| !(d.is_finite() && **d >= 0.0))
+        {
+            return Some((
+                "disturbance_delays_candidates",
+                format!("every candidate must be finite and >= 0, got {bad}"),
+            ));
+        }
         if let Some(hz) = self.pulsation_hz {
             if !(hz.is_finite() && hz > 0.0) {
                 return Some(("pulsation_hz", format!("must be finite and > 0, got {hz}")));
@@ -531,15 +547,15 @@ pub(crate) fn nominal_transition(model: &NominalModel, h: f64) -> (Matrix3<f64>,
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    const MODEL: NominalModel = NominalModel {
+    pub(crate) const MODEL: NominalModel = NominalModel {
         mass_kg: 5e-5,
         linear_drag_n_s_per_m: 5.6e-4,
     };
 
-    fn ns(t_s: f64) -> u64 {
+    pub(crate) fn ns(t_s: f64) -> u64 {
         (t_s * 1e9).round() as u64
     }
 
@@ -552,8 +568,8 @@ mod tests {
         simulate_with(forces, |_| d, until_s)
     }
 
-    /// [`simulate`] with an extra force that varies in time.
-    fn simulate_with(
+    /// [`simulate`] with an extra force that varies in time (positions every 10 µs).
+    pub(crate) fn simulate_with(
         forces: &[(f64, Vector2<f64>)],
         d: impl Fn(f64) -> Vector2<f64>,
         until_s: f64,

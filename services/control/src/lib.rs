@@ -8,6 +8,7 @@ pub mod controllers;
 pub mod latency;
 pub mod observer;
 pub mod operator;
+pub mod predictor_bank;
 pub mod reference;
 pub mod rig3d;
 
@@ -44,9 +45,10 @@ use crate::controllers::{
     ControlInput, ControlTerms, Controller, ControllerKind, ForceSite, MpcGains, NominalModel,
     PidGains, SmcGains,
 };
-use crate::latency::{LatencyConfig, StatePredictor};
+use crate::latency::LatencyConfig;
 use crate::observer::{ObserverConfig, VelocityEstimate, VelocityObserver};
 use crate::operator::{Operator, OperatorEventRow};
+use crate::predictor_bank::PredictorBank;
 use crate::reference::Reference;
 
 /// Allowance on top of `max_speed_mps · Δt` before a pose counts as a jump, so that
@@ -282,6 +284,9 @@ pub struct Decision {
     pub predicted_position_m: Vector2<f64>,
     /// The share of the measured motion the predictor's model missed, recently (0 to 1).
     pub unpredicted_motion_share: f64,
+    /// The latency predictor's disturbance time constant in use, in delays (the chosen
+    /// candidate of `[control.latency] disturbance_delays_candidates`).
+    pub disturbance_delays: f64,
     /// What this pose's heading did to the coil-gain estimate, when estimating.
     pub gain_update: Option<GainUpdate>,
 }
@@ -308,7 +313,7 @@ pub struct ControlLoop {
     velocity: Vector2<f64>,
     last_mode: ControlMode,
     /// Predicts the state at actuation time from delayed poses and the issued forces.
-    predictor: StatePredictor,
+    predictor: PredictorBank,
     /// The velocity from the forces and the fed positions (`velocity_estimate = "observer"`).
     observer: Option<VelocityObserver>,
     /// Actuation time and currents of the last tracking command (the slew limit's start).
@@ -394,7 +399,7 @@ impl ControlLoop {
             mass_kg: robot.mass_kg + robot.added_mass_kg,
             ..model
         };
-        let predictor = StatePredictor::new(config.latency.clone(), moving);
+        let predictor = PredictorBank::new(config.latency.clone(), moving);
         let observer = (config.velocity_estimate == VelocityEstimate::Observer).then(|| {
             VelocityObserver::new(config.observer.clone(), moving, config.latency.pulsation_hz)
         });
@@ -941,6 +946,7 @@ impl ControlLoop {
             predicted_position_m: Vector2::new(pose.position_m[0], pose.position_m[1]),
             gain_update: None,
             unpredicted_motion_share: self.predictor.unpredicted_motion_share(),
+            disturbance_delays: self.predictor.active_disturbance_delays(),
         }
     }
 
@@ -996,6 +1002,7 @@ impl ControlLoop {
                 predicted_position_m: measured,
                 gain_update: None,
                 unpredicted_motion_share: self.predictor.unpredicted_motion_share(),
+                disturbance_delays: self.predictor.active_disturbance_delays(),
             };
         }
         let tracking = self.last_mode == ControlMode::Track;
@@ -1140,6 +1147,7 @@ impl ControlLoop {
             predicted_position_m: measured + predicted.motion_ahead_m,
             gain_update,
             unpredicted_motion_share: self.predictor.unpredicted_motion_share(),
+            disturbance_delays: self.predictor.active_disturbance_delays(),
         }
     }
 }
@@ -1329,6 +1337,7 @@ fn log_decision(rec: &rerun::RecordingStream, pose: &Pose, d: &Decision) {
         "control/unpredicted_motion_share",
         d.unpredicted_motion_share,
     );
+    recording::scalar(rec, "control/disturbance_delays", d.disturbance_delays);
     for (i, c) in d.command.currents().unwrap_or_default().iter().enumerate() {
         recording::scalar(rec, &format!("control/current_a/{i}"), *c);
     }
