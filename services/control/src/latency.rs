@@ -246,7 +246,7 @@ pub struct StatePredictor {
 }
 
 /// Averaging time of the unpredicted motion share: several pulsation periods.
-const MOTION_SHARE_WINDOW_S: f64 = 2.0;
+pub(crate) const MOTION_SHARE_WINDOW_S: f64 = 2.0;
 
 /// Longest span of force history kept (ns): far more than any usable pose age.
 const HISTORY_NS: u64 = 5_000_000_000;

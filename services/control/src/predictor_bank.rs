@@ -3,23 +3,26 @@
 //! predicted the position the later poses then showed, the best one feeding the controller.
 //!
 //! How fast the disturbance estimate should follow depends on the flow: noise that stays
-//! correlated for a few delays is worth extrapolating from a quick estimate, a pump's strokes
-//! that reverse within the delay are not (README, "Choosing the disturbance bandwidth from the
-//! data"). Which of the two a rig has is measured here, not assumed: every candidate predicts
-//! the position at the actuation time, and when a pose captured at that time arrives, its miss
-//! is recorded. With no candidates configured the bank is the single predictor of
-//! `disturbance_delays`, bit for bit.
+//! correlated for a few delays can be worth extrapolating from a quick estimate, a push that
+//! reverses within the delay is not (the unit test below has one of each). Which a rig has is
+//! measured here, not assumed: every candidate predicts the position at the actuation time, and
+//! when a pose captured at that time arrives, its miss is recorded. The best predictor is not
+//! always the best loop: on the twin's 10 cm/s jet at 100 ms it chose the quick estimate and
+//! lost runs the slow one held, so the candidates are off by default (README, "Choosing the
+//! disturbance bandwidth from the data"). With no candidates the bank is the single predictor
+//! of `disturbance_delays`, bit for bit.
 
 use std::collections::VecDeque;
 
 use nalgebra::Vector2;
 
 use crate::controllers::NominalModel;
-use crate::latency::{LatencyConfig, Predicted, StatePredictor};
+use crate::latency::{LatencyConfig, Predicted, StatePredictor, MOTION_SHARE_WINDOW_S};
 
-/// Averaging time of each candidate's prediction miss (s): several pulsation periods and
-/// several times the flow noise's correlation, so a choice reflects the flow, not one stroke.
-const SCORE_WINDOW_S: f64 = 2.0;
+/// Averaging time of each candidate's prediction miss: the predictor's own averaging time for
+/// what its model misses (several pulsation periods), so a choice reflects the flow, not one
+/// stroke.
+const SCORE_WINDOW_S: f64 = MOTION_SHARE_WINDOW_S;
 
 /// A candidate takes over only when its mean-square miss is below this share of the active
 /// one's: near-equal candidates do not trade places every pose (each change moves the state
