@@ -50,7 +50,8 @@ pub struct SmcGains {
     /// default ω_n (2 Hz) is 0.13 rad per sample at 100 Hz but 1.26 at the paper's 10 Hz.
     pub sampled_bandwidth_rad: f64,
     /// With `auto_schedule`: the DOB's time constant η is kept at or above this many times
-    /// the measured capture → actuation delay.
+    /// the measured capture → actuation delay plus half the sample time (the mean delay of a
+    /// command held over its sample).
     pub delay_eta_factor: f64,
     /// With `auto_schedule`: how many standard deviations of the coil gains' uncertainty
     /// (`ControlInput::coil_gain_std`) the force model may be off, ε. The latency predictor
@@ -117,6 +118,10 @@ impl Default for SmcGains {
         }
     }
 }
+
+/// A command held over its sample (zero-order hold) acts on average this many sample times
+/// after the actuation time.
+const ZERO_ORDER_HOLD_DELAY: f64 = 0.5;
 
 /// Over how long the SMC-DOB averages a slew bound's shortfall before its observer counts it
 /// (s). The shortfall swings within each pump stroke (the bound holds the coils back
@@ -210,10 +215,13 @@ impl SmcDob {
         let drag_per_sample = self.model.linear_drag_n_s_per_m * dt / self.model.mass_kg;
         let budget = g.sampled_bandwidth_rad.max(1e-3) * (1.0 + drag_per_sample);
         let omega_scale = (budget / (omega_n * dt)).min(1.0);
-        // The observer sees a disturbance only `delay_s` after it acts; its filter must be
-        // slower than that (phase lag ω·D at its bandwidth 1/η), or it feeds the delay back.
+        // The observer sees a disturbance only `delay_s` after it acts, and the command that
+        // answers it is held for the whole sample (on average half a sample late); its filter
+        // must be slower than both (phase lag ω·D at its bandwidth 1/η), or it feeds the delay
+        // back. Half a sample is what lets a capsule on the phantom floor (drag several times
+        // the nominal) be held at 10 Hz (README, "The observer and the sample").
         let eta_s = (lerp(g.eta_s, g.flow_eta_s) * (1.0 + 0.75 * zone))
-            .max(g.delay_eta_factor * input.delay_s.clamp(0.0, 1.0));
+            .max(g.delay_eta_factor * (input.delay_s.clamp(0.0, 1.0) + ZERO_ORDER_HOLD_DELAY * dt));
         SmcGains {
             k1: g.k1 * omega_scale,
             k2: g.k2 * omega_scale * omega_scale,
