@@ -181,6 +181,46 @@ fn a_steady_prediction_leaves_the_dob_alone() {
     assert_eq!(alone, led);
 }
 
+/// Poses with 20 µm RMS of uniform noise (a fixed linear congruential sequence) and the velocity
+/// from their differences low-passed over 30 ms, as the loop feeds a controller every `dt`.
+struct NoisyDifferences {
+    state: u64,
+    dt: f64,
+    smoothing: f64,
+    last_seen: Option<Vector2<f64>>,
+    velocity: Vector2<f64>,
+}
+
+impl NoisyDifferences {
+    fn new(seed: u64, dt: f64) -> Self {
+        Self {
+            state: seed,
+            dt,
+            smoothing: 1.0 - (-dt / 0.03f64).exp(),
+            last_seen: None,
+            velocity: Vector2::zeros(),
+        }
+    }
+
+    fn noise(&mut self) -> f64 {
+        self.state = self
+            .state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 20e-6 * 12f64.sqrt()
+    }
+
+    /// The position and velocity the controller is fed for a capsule at `x`.
+    fn see(&mut self, x: Vector2<f64>) -> (Vector2<f64>, Vector2<f64>) {
+        let seen = x + Vector2::new(self.noise(), self.noise());
+        if let Some(last_seen) = self.last_seen {
+            self.velocity += ((seen - last_seen) / self.dt - self.velocity) * self.smoothing;
+        }
+        self.last_seen = Some(seen);
+        (seen, self.velocity)
+    }
+}
+
 /// Holds the origin at 100 Hz in still 4.3 cP fluid with the scheduled SMC-DOB, fed poses with
 /// 20 µm of noise and the velocity the loop makes of them (differences low-passed over 30 ms),
 /// the coils making each commanded force through a first-order lag of `coil_tau_s` while the
@@ -202,24 +242,10 @@ fn hold_with_lagging_coils(coil_tau_s: f64, told_tau_s: f64) -> f64 {
     let (mut x, mut v) = (Vector2::zeros(), Vector2::zeros());
     let mut coil_force = Vector2::zeros();
     let (dt, sub) = (0.01, 100);
-    // Uniform noise of 20 µm RMS from a fixed linear congruential sequence.
-    let mut state = 12345u64;
-    let mut noise = move || {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 20e-6 * 12f64.sqrt()
-    };
-    let (mut last_seen, mut velocity) = (Vector2::zeros(), Vector2::zeros());
-    let smoothing = 1.0 - (-dt / 0.03f64).exp();
+    let mut poses = NoisyDifferences::new(12345, dt);
     let (mut sum_sq, mut count) = (0.0, 0);
     for k in 0..(4.0 / dt) as usize {
-        let seen = x + Vector2::new(noise(), noise());
-        if k > 0 {
-            velocity += ((seen - last_seen) / dt - velocity) * smoothing;
-        }
-        last_seen = seen;
-        let input = holding_input(dt, (seen, velocity), Vector2::zeros(), None);
+        let input = holding_input(dt, poses.see(x), Vector2::zeros(), None);
         let (f, _) = ctrl.update(&input);
         ctrl.applied(f, f);
         let h = dt / f64::from(sub);
@@ -274,23 +300,10 @@ fn hold_at_10_hz_with_drag(drag_factor: f64) -> f64 {
     let mut ctrl = SmcDob::new(gains, model);
     let (mut x, mut v) = (Vector2::new(0.5e-3, -0.3e-3), Vector2::zeros());
     let (dt, sub) = (0.1, 1000);
-    let mut state = 2024u64;
-    let mut noise = move || {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 20e-6 * 12f64.sqrt()
-    };
-    let (mut last_seen, mut velocity) = (Vector2::zeros(), Vector2::zeros());
-    let smoothing = 1.0 - (-dt / 0.03f64).exp();
+    let mut poses = NoisyDifferences::new(2024, dt);
     let (mut sum_sq, mut count) = (0.0, 0);
     for k in 0..(10.0 / dt) as usize {
-        let seen = x + Vector2::new(noise(), noise());
-        if k > 0 {
-            velocity += ((seen - last_seen) / dt - velocity) * smoothing;
-        }
-        last_seen = seen;
-        let input = holding_input(dt, (seen, velocity), Vector2::zeros(), None);
+        let input = holding_input(dt, poses.see(x), Vector2::zeros(), None);
         let (f, _) = ctrl.update(&input);
         ctrl.applied(f, f);
         let h = dt / f64::from(sub);
