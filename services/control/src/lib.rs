@@ -77,7 +77,11 @@ pub struct ControlConfig {
     pub aligning_torque_n_m: f64,
     /// The coils' current time constant (ms): L/R, or the driver's current loop, measured by
     /// the lab (a current step on the board's Status). The scheduled SMC-DOB counts it
-    /// (`SmcGains::coil_time_constant_s`); 0 (default): coils that follow within a frame.
+    /// (`SmcGains::coil_time_constant_s`), and so does the orientation field: the capsule
+    /// follows a commanded field through the coils' lag and its own rotation, so a turning
+    /// field turns that much slower and the coil-gain estimate waits that much longer for the
+    /// field to settle before it learns from a frame. 0 (default): coils that follow within a
+    /// frame.
     pub coil_time_constant_ms: f64,
     /// ω0 of paper Eq. 2 (N/T): weight of the field rows against the force rows.
     pub omega0_n_per_t: f64,
@@ -129,8 +133,9 @@ pub struct ControlConfig {
     /// the magnet's heading, since F = (m·∇)B. Once the force is within reach again the field
     /// turns back toward `field_heading_deg` as far as the force stays within reach. Whatever
     /// this allows, the field turns no faster than the capsule follows it within one 15°
-    /// candidate step (sin 15° over its rotation time constant: about 1350°/s at 20 cP and
-    /// 1 mT), so at a fast loop a turn is spread over several commands.
+    /// candidate step (sin 15° over its rotation time constant plus the coils' told
+    /// `coil_time_constant_ms`: about 1350°/s at 20 cP and 1 mT with instant coils), so at a
+    /// fast loop a turn is spread over several commands.
     pub field_heading_turn_deg: Option<f64>,
     /// Where the fluid moves (the flow service reports flow at the robot), the turning field
     /// (`field_heading_turn_deg`) heads for the direction of the asked force, averaged over
@@ -408,11 +413,16 @@ impl ControlLoop {
         let rotation_time_constant_s =
             physics::rotational_drag(viscosity_pa_s, robot.length_m, robot.diameter_m / 2.0)
                 / (robot.magnet_moment_am2 * field_magnitude_t).max(1e-12);
+        // The capsule follows the commanded field through two lags in series: the coils'
+        // currents (L/R, when control is told it) and its own rotation; the sum of their time
+        // constants is the mean delay of the pair.
+        let follow_time_constant_s =
+            rotation_time_constant_s + config.coil_time_constant_ms.max(0.0) * 1e-3;
         let alignment_window_s =
-            (config.gain_estimation.settle_ms * 1e-3).max(3.0 * rotation_time_constant_s);
+            (config.gain_estimation.settle_ms * 1e-3).max(3.0 * follow_time_constant_s);
         // Steadily turning at ω the overdamped capsule lags the field by asin(ω τ).
         let max_field_turn_rate_rad_per_s =
-            FIELD_HEADING_STEP_DEG.to_radians().sin() / rotation_time_constant_s.max(1e-6);
+            FIELD_HEADING_STEP_DEG.to_radians().sin() / follow_time_constant_s.max(1e-6);
         let field_turn_budget_rad = config
             .field_heading_turn_deg
             .map_or(0.0, |deg| deg.max(0.0).to_radians());
@@ -444,7 +454,7 @@ impl ControlLoop {
             field_heading_rad: config_heading,
             field_magnitude_t,
             alignment_window_ns: (alignment_window_s.min(10.0) * 1e9) as u64,
-            rotation_settle_ns: ((3.0 * rotation_time_constant_s).min(10.0) * 1e9) as u64,
+            rotation_settle_ns: ((3.0 * follow_time_constant_s).min(10.0) * 1e9) as u64,
             max_field_turn_rate_rad_per_s,
             field_turn_budget_rad,
             field_history: VecDeque::with_capacity(FIELD_HISTORY_LEN),
@@ -2116,6 +2126,37 @@ mod tests {
         // Once the field has held 90° for three rotation time constants, frames measure again.
         let settled = c.magnet_offset(FRAC_PI_2 - 0.01, 110 * ms + c.rotation_settle_ns + ms);
         assert!((settled + 0.01).abs() < 1e-12, "{settled}");
+    }
+
+    #[test]
+    fn told_slow_coils_the_loop_waits_for_the_field_they_make() {
+        // 30 ms coils ahead of the capsule's own ≈ 11 ms turn (20 cP, 1 mT): the field a
+        // command asks for arrives ≈ 30 ms late, so the capsule follows it with ≈ 41 ms.
+        let turning = |coil_ms: f64| {
+            beyond_loop(|c| {
+                c.field_heading_turn_deg = Some(45.0);
+                c.coil_time_constant_ms = coil_ms;
+            })
+        };
+        let mut instant = turning(0.0);
+        let mut slow = turning(30.0);
+        let ratio = instant.max_field_turn_rate_rad_per_s / slow.max_field_turn_rate_rad_per_s;
+        assert!((3.0..4.5).contains(&ratio), "turn rate {ratio}x slower");
+        // The coil gains learn only from frames after the field held for three such lags.
+        let ms = 1_000_000u64;
+        assert!(instant.alignment_window_ns < 40 * ms);
+        assert!(slow.alignment_window_ns > 115 * ms);
+        // A frame 40 ms after a turn to 90°: settled for instant coils, mid-turn for slow ones.
+        for c in [&mut instant, &mut slow] {
+            c.record_field(0, Some(FRAC_PI_4));
+            c.magnet_offset(FRAC_PI_4 + 0.02, 100 * ms);
+            c.record_field(110 * ms, Some(FRAC_PI_2));
+            c.field_heading_rad = FRAC_PI_2;
+        }
+        let after_instant = instant.magnet_offset(FRAC_PI_2 - 0.01, 150 * ms);
+        assert!((after_instant + 0.01).abs() < 1e-12, "{after_instant}");
+        let after_slow = slow.magnet_offset(60f64.to_radians(), 150 * ms);
+        assert!((after_slow - 0.02).abs() < 1e-12, "{after_slow}");
     }
 
     /// Per-coil gains of the "true" coils in the gain-learning tests (the model's are 1).
