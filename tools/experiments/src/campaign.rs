@@ -301,6 +301,10 @@ pub struct Manifest {
     pub write_rrd: bool,
     /// Process mode reads each cell's earlier run under `<out>/runs/` instead of running it.
     pub reuse_runs: bool,
+    /// Fast mode keeps every run's trace in `campaign/traces/`, not only the first trial's
+    /// that the figures need.
+    #[serde(default)]
+    pub every_trace: bool,
     /// The run settings line of `table.md` (frame period, latency, gain error, rig).
     pub table_header: String,
     /// The paper's numbers and targets go beside ours (the paper's rig only).
@@ -320,6 +324,7 @@ pub struct MatrixPlan {
     pub cells: Vec<CellSpec>,
     pub write_rrd: bool,
     pub reuse_runs: bool,
+    pub every_trace: bool,
     pub table_header: String,
     pub bin_dir: PathBuf,
     pub slurm: Option<SlurmSettings>,
@@ -544,6 +549,7 @@ impl Campaign {
             bin_dir: std::path::absolute(&plan.bin_dir)?,
             write_rrd: plan.write_rrd,
             reuse_runs: plan.reuse_runs,
+            every_trace: plan.every_trace,
             table_header: plan.table_header,
             on_paper_rig: rig.path == fieldmaps::rigfile::paper_rig_path(),
             base_scenario: toml::to_string(&scenario_document(&plan.base)?)?,
@@ -851,7 +857,7 @@ impl Campaign {
             &reference,
             scenario.rig()?.coil_limits().coil_resistance_ohm,
         );
-        if spec.keeps_trace() {
+        if spec.keeps_trace() || self.manifest.every_trace {
             self.write_trace(name, &trace)?;
         }
         let result = CellResult {
@@ -883,11 +889,11 @@ impl Campaign {
                 sim_time_s: row.time_s,
                 x_m: row.position_m.x,
                 y_m: row.position_m.y,
-                vx_mps: 0.0,
-                vy_mps: 0.0,
-                heading_rad: 0.0,
-                flow_x_mps: 0.0,
-                flow_y_mps: 0.0,
+                vx_mps: row.motion.velocity_mps.x,
+                vy_mps: row.motion.velocity_mps.y,
+                heading_rad: row.motion.heading_rad,
+                flow_x_mps: row.motion.flow_mps.x,
+                flow_y_mps: row.motion.flow_mps.y,
                 wall_contact: row.wall_contact,
                 max_abs_current_a: row.max_abs_current_a,
                 lockstep_misses: 0,

@@ -418,6 +418,17 @@ pub struct TraceRow {
     pub sum_sq_current_a2: f64,
     /// Current in each coil (A; rest 0), when the trace has them.
     pub coil_currents_a: Option<[f64; MAX_COILS]>,
+    /// The capsule's velocity, magnet heading (rad from +x) and the true flow at it: what the
+    /// plant knew, for tracing a run (zero where the source trace lacks them).
+    pub motion: TraceMotion,
+}
+
+/// The truth beyond position that a trace carries (see [`TraceRow::motion`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct TraceMotion {
+    pub velocity_mps: Vector2<f64>,
+    pub heading_rad: f64,
+    pub flow_mps: Vector2<f64>,
 }
 
 /// Localization noise of the fast mode (per axis), from vision-eval's centroid error.
@@ -465,6 +476,11 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
                 .fold(0.0, |m, c| m.max(c.abs())),
             sum_sq_current_a2: state.coil_currents_a.iter().map(|c| c * c).sum(),
             coil_currents_a: Some(state.coil_currents_a),
+            motion: TraceMotion {
+                velocity_mps: state.velocity_mps,
+                heading_rad: state.heading_rad,
+                flow_mps: state.last_true_flow_mps,
+            },
         });
         if seq == frames {
             break;
@@ -733,6 +749,11 @@ pub fn read_truth(path: &Path) -> anyhow::Result<Vec<TraceRow>> {
                 .sum_sq_current_a2
                 .unwrap_or(row.max_abs_current_a * row.max_abs_current_a * MAX_COILS as f64),
             coil_currents_a,
+            motion: TraceMotion {
+                velocity_mps: Vector2::new(row.vx_mps, row.vy_mps),
+                heading_rad: row.heading_rad,
+                flow_mps: Vector2::new(row.flow_x_mps, row.flow_y_mps),
+            },
         });
     }
     Ok(trace)
@@ -1058,6 +1079,7 @@ mod tests {
                         currents[0] = if i % 2 == 0 { 1.0 } else { -1.0 };
                         currents
                     }),
+                    motion: TraceMotion::default(),
                 }
             })
             .collect();
@@ -1098,6 +1120,7 @@ mod tests {
                         max_abs_current_a: 0.0,
                         sum_sq_current_a2: 0.0,
                         coil_currents_a: None,
+                        motion: TraceMotion::default(),
                     }
                 })
                 .collect()

@@ -149,6 +149,11 @@ struct MatrixArgs {
     /// always keeps each run's `run.rrd` under `<out>/runs/<cell>/run/`).
     #[arg(long)]
     no_rrd: bool,
+    /// Fast mode: keep every run's trace (`<out>/campaign/traces/<cell>.csv`: position,
+    /// velocity, magnet heading, true flow and coil currents per frame), not only each cell's
+    /// first trial, which the figures use.
+    #[arg(long)]
+    every_trace: bool,
     /// Process mode: take each cell's ground truth from an earlier run of the same cell under
     /// `<out>/runs/` instead of running it again (to re-report after a change to the metrics or
     /// figures). A cell whose recorded scenario differs is an error; wall_s then is read time.
@@ -398,6 +403,7 @@ fn run_matrix(args: &MatrixArgs) -> anyhow::Result<ExitCode> {
             base,
             cells,
             write_rrd: !args.no_rrd,
+            every_trace: args.every_trace,
             reuse_runs: args.reuse_runs,
             bin_dir: bin_dir()?,
             slurm: settings.clone(),
