@@ -184,6 +184,13 @@ const FIELD_HEADING_STEP_DEG: f64 = 15.0;
 /// The asked force's direction a pulling field follows is averaged over this long (s): the
 /// pump's stroke (1–3 Hz) turns it, frame-to-frame noise does not.
 const PULL_FORCE_AVERAGE_S: f64 = 0.1;
+/// A pulling heading where the coils missed the asked force stays unused this long (ns): the
+/// slowest pump stroke the robustness matrix asks for (1 Hz), so the field does not chase the
+/// pull between strokes.
+const PULL_REACH_MEMORY_NS: u64 = 1_000_000_000;
+/// The asked force's envelope decays with this time constant (s): to 60 % over the slowest
+/// stroke the robustness matrix asks for (1 Hz).
+const FORCE_ENVELOPE_DECAY_S: f64 = 2.0;
 /// A force counts as made when the allocation misses it by at most this fraction.
 const FORCE_MADE_FRACTION: f64 = 0.02;
 /// A turn toward more force must miss the asked force by this fraction less than staying.
@@ -358,6 +365,12 @@ pub struct ControlLoop {
     /// at the robot: the heading `field_follows_force` pulls along.
     pull_force_n: Vector2<f64>,
     fluid_moves: bool,
+    /// The asked force's recent peak (N): its magnitude, decaying over
+    /// `FORCE_ENVELOPE_DECAY_S`.
+    force_envelope_n: f64,
+    /// Until when (ns) the field does not pull: the pull's heading last missed the asked
+    /// force within `PULL_REACH_MEMORY_NS` of it.
+    pull_unreachable_until_ns: u64,
 }
 
 /// Commands remembered for matching frames to the currents in effect at their capture.
@@ -461,6 +474,8 @@ impl ControlLoop {
             magnet_offset_rad: 0.0,
             pull_force_n: Vector2::zeros(),
             fluid_moves: false,
+            pull_unreachable_until_ns: 0,
+            force_envelope_n: 0.0,
         }
     }
 
@@ -659,20 +674,37 @@ impl ControlLoop {
         force: &Vector2<f64>,
         slew: Option<(&[f64; MAX_COILS], f64)>,
         max_turn_rad: f64,
+        actuation_ns: u64,
     ) -> ([f64; MAX_COILS], Vector2<f64>) {
         let present = self.field_heading_rad;
         if self.config.field_heading_turn_deg.is_none() {
             // The field never turned: the magnet is where the frame shows it.
             return self.allocate(position, measured_heading, force, slew);
         }
-        let pulling = self.pulling_heading(magnet_offset);
-        let home = pulling.unwrap_or(self.config.field_heading_deg.to_radians());
         let miss = |achieved: &Vector2<f64>| (force - achieved).norm();
         let made = force.norm() * FORCE_MADE_FRACTION + 1e-12;
         let at = |this: &Self, field_heading: f64| {
             let magnet = field_heading + magnet_offset;
             this.allocate_with_field(position, magnet, field_heading, force, slew)
         };
+        let mut pulling = self.pulling_heading(magnet_offset);
+        if let Some(pull) = pulling {
+            // Where the coils cannot make the stroke's force along the pull, heading there
+            // would turn the capsule back and forth with every stroke, or hold it where the
+            // next stroke outruns them: the pull must make the recent strokes' peak.
+            let peak = force * (self.force_envelope_n / force.norm().max(1e-12)).max(1.0);
+            let magnet = pull + magnet_offset;
+            let made_at_pull = self
+                .allocate_with_field(position, magnet, pull, &peak, slew)
+                .1;
+            if (peak - made_at_pull).norm() > peak.norm() * FORCE_MADE_FRACTION + 1e-12 {
+                self.pull_unreachable_until_ns = actuation_ns.saturating_add(PULL_REACH_MEMORY_NS);
+            }
+            if actuation_ns < self.pull_unreachable_until_ns {
+                pulling = None;
+            }
+        }
+        let home = pulling.unwrap_or(self.config.field_heading_deg.to_radians());
         let stay = at(self, present);
         // A pulling heading (off the candidates' grid) is reached within half a step.
         let home_tolerance = if pulling.is_some() {
@@ -704,6 +736,41 @@ impl ControlLoop {
         }
         let (heading, chosen) = match best_home {
             Some(found) => found,
+            None if steps > 0 => {
+                // Nothing within this command's turn makes the force: where farther does, or
+                // comes closest, turn toward it as far as the turn allows. A quarter turn
+                // either way covers every axis (the magnet turned half a turn makes the same
+                // force with the currents reversed).
+                let quarter = (std::f64::consts::FRAC_PI_2 / step).round() as i32;
+                let mut goal: Option<(i32, f64)> = None;
+                let mut goal_in_reach = false;
+                let mut closest_miss = best.2;
+                for k in (-quarter..=quarter).filter(|k| k.abs() > steps) {
+                    let heading = wrap_angle(present + f64::from(k) * step);
+                    let candidate_miss = miss(&at(self, heading).1);
+                    if candidate_miss <= made {
+                        let nearer_home = goal.is_none_or(|(_, h)| {
+                            !goal_in_reach || toward_home(heading) < toward_home(h)
+                        });
+                        if nearer_home {
+                            goal = Some((k, heading));
+                            goal_in_reach = true;
+                        }
+                    } else if !goal_in_reach
+                        && candidate_miss < closest_miss * (1.0 - TURN_HYSTERESIS_FRACTION)
+                    {
+                        goal = Some((k, heading));
+                        closest_miss = candidate_miss;
+                    }
+                }
+                match goal {
+                    Some((k, _)) => {
+                        let heading = wrap_angle(present + f64::from(k.signum() * steps) * step);
+                        (heading, at(self, heading))
+                    }
+                    None => (best.0, best.1),
+                }
+            }
             None => (best.0, best.1),
         };
         self.field_heading_rad = heading;
@@ -1097,6 +1164,9 @@ impl ControlLoop {
         let max_turn_rad = self.field_turn_budget(actuation_ns);
         self.pull_force_n +=
             (force - self.pull_force_n) * (1.0 - (-dt / PULL_FORCE_AVERAGE_S).exp());
+        self.force_envelope_n = force
+            .norm()
+            .max(self.force_envelope_n * (-dt / FORCE_ENVELOPE_DECAY_S).exp());
         self.fluid_moves = flow_mps.norm() > 0.0;
         let field_heading_before = self.field_heading_rad;
         let (mut currents, mut achieved) = self.allocate_turning(
@@ -1106,6 +1176,7 @@ impl ControlLoop {
             &force,
             slew,
             max_turn_rad,
+            actuation_ns,
         );
         self.field_turn_budget_rad = (self.field_turn_budget_rad
             - wrap_angle(self.field_heading_rad - field_heading_before).abs())
@@ -2013,7 +2084,7 @@ mod tests {
             // The magnet follows the field.
             let offset = wrap_angle(heading - turning.field_heading_rad);
             (_, achieved) =
-                turning.allocate_turning(&position, heading, offset, &force, None, FRAC_PI_4);
+                turning.allocate_turning(&position, heading, offset, &force, None, FRAC_PI_4, 0);
             let turned = wrap_angle(turning.field_heading_rad - heading).abs();
             assert!(turned <= 45f64.to_radians() + 1e-9, "turned {turned} rad");
             heading = turning.field_heading_rad;
@@ -2027,7 +2098,7 @@ mod tests {
         for _ in 0..4 {
             let offset = wrap_angle(heading - turning.field_heading_rad);
             let (_, made) =
-                turning.allocate_turning(&position, heading, offset, &small, None, FRAC_PI_4);
+                turning.allocate_turning(&position, heading, offset, &small, None, FRAC_PI_4, 0);
             assert!(
                 (made - small).norm() <= 0.02 * small.norm() + 1e-12,
                 "{made:?}"
@@ -2087,7 +2158,7 @@ mod tests {
             c.pull_force_n = force;
             c.fluid_moves = moving;
             for _ in 0..4 {
-                c.allocate_turning(&position, FRAC_PI_4, 0.0, &force, None, FRAC_PI_4);
+                c.allocate_turning(&position, FRAC_PI_4, 0.0, &force, None, FRAC_PI_4, 0);
             }
             let off_axis = wrap_angle(c.field_heading_rad - FRAC_PI_2).abs();
             let off_axis = off_axis.min(std::f64::consts::PI - off_axis);
@@ -2105,6 +2176,92 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Where the coils miss `force` (by more than 2 %) at field heading `heading_deg` (the
+    /// magnet along the field).
+    fn misses(
+        c: &ControlLoop,
+        position: &Vector2<f64>,
+        force: &Vector2<f64>,
+        heading_deg: f64,
+    ) -> bool {
+        let h = heading_deg.to_radians();
+        let (_, made) = c.allocate_with_field(position, h, h, force, None);
+        (force - made).norm() > 0.02 * force.norm()
+    }
+
+    #[test]
+    fn a_force_out_of_reach_of_one_command_turn_is_sought_farther() {
+        // In the inflow canal a force up and to the left is out of reach with the magnet at
+        // −45° and at every heading one 45° turn reaches, and within reach at 45°.
+        let position = Vector2::new(-0.011, 0.002);
+        let force = Vector2::new(-1.0e-4, 1.1e-4);
+        let mut c = beyond_loop(|c| c.field_heading_turn_deg = Some(45.0));
+        for deg in [-90.0, -75.0, -60.0, -45.0, -30.0, -15.0, 0.0] {
+            assert!(misses(&c, &position, &force, deg), "made at {deg}°");
+        }
+        assert!(!misses(&c, &position, &force, 45.0));
+        c.field_heading_rad = -FRAC_PI_4;
+        let mut heading = -FRAC_PI_4;
+        let mut achieved = Vector2::zeros();
+        for _ in 0..3 {
+            (_, achieved) = c.allocate_turning(&position, heading, 0.0, &force, None, FRAC_PI_4, 0);
+            heading = c.field_heading_rad;
+        }
+        assert!(
+            (force - achieved).norm() <= 0.02 * force.norm(),
+            "at {:.0}°: {achieved:?}",
+            heading.to_degrees()
+        );
+    }
+
+    #[test]
+    fn the_field_does_not_pull_along_an_axis_where_the_coils_miss_the_force() {
+        // The same force: pulled along its axis (≈ 132°) the coils miss it, at 45° they make
+        // it, so the field stays at 45° for as long as the pull's heading stays out of reach.
+        let position = Vector2::new(-0.011, 0.002);
+        let force = Vector2::new(-1.0e-4, 1.1e-4);
+        let mut c = beyond_loop(|c| {
+            c.field_heading_turn_deg = Some(45.0);
+            c.field_follows_force = true;
+        });
+        c.pull_force_n = force;
+        c.fluid_moves = true;
+        let pull = c.pulling_heading(0.0).unwrap();
+        assert!(misses(&c, &position, &force, pull.to_degrees()), "{pull}");
+        for frame in 0..4 {
+            let (_, made) = c.allocate_turning(
+                &position,
+                c.field_heading_rad,
+                0.0,
+                &force,
+                None,
+                FRAC_PI_4,
+                frame * 10_000_000,
+            );
+            assert!(
+                wrap_angle(c.field_heading_rad - FRAC_PI_4).abs() < 1e-9,
+                "frame {frame}: {}",
+                c.field_heading_rad.to_degrees()
+            );
+            assert!((force - made).norm() <= 0.02 * force.norm(), "{made:?}");
+        }
+        // A force the pull's heading makes is pulled along once the miss is a second old.
+        let small = force * 0.2;
+        c.pull_force_n = small;
+        c.force_envelope_n = small.norm();
+        let mut heading = c.field_heading_rad;
+        for frame in [1_100_000_000, 1_110_000_000, 1_120_000_000, 1_130_000_000] {
+            c.allocate_turning(&position, heading, 0.0, &small, None, FRAC_PI_4, frame);
+            heading = c.field_heading_rad;
+        }
+        assert!(
+            wrap_angle(heading - pull).abs() <= 7.5f64.to_radians() + 1e-9,
+            "{} against {}",
+            heading.to_degrees(),
+            pull.to_degrees()
+        );
     }
 
     #[test]
