@@ -128,8 +128,9 @@ pub struct ControlConfig {
     pub gain_estimation: GainEstimationConfig,
     /// Turn the orientation field (and with it the capsule) when the coils cannot make the
     /// asked force at the present heading, by at most this many degrees per command, toward
-    /// the heading where they come closest (none: the field stays at `field_heading_deg`, as
-    /// in the paper). The force the coils can make in one direction depends several-fold on
+    /// the heading where they make it or come closest, sought a quarter turn either way, past
+    /// what one command may turn (none: the field stays at `field_heading_deg`, as in the
+    /// paper). The force the coils can make in one direction depends several-fold on
     /// the magnet's heading, since F = (m·∇)B. Once the force is within reach again the field
     /// turns back toward `field_heading_deg` as far as the force stays within reach. Whatever
     /// this allows, the field turns no faster than the capsule follows it within one 15°
@@ -184,13 +185,6 @@ const FIELD_HEADING_STEP_DEG: f64 = 15.0;
 /// The asked force's direction a pulling field follows is averaged over this long (s): the
 /// pump's stroke (1–3 Hz) turns it, frame-to-frame noise does not.
 const PULL_FORCE_AVERAGE_S: f64 = 0.1;
-/// A pulling heading where the coils missed the asked force stays unused this long (ns): the
-/// slowest pump stroke the robustness matrix asks for (1 Hz), so the field does not chase the
-/// pull between strokes.
-const PULL_REACH_MEMORY_NS: u64 = 1_000_000_000;
-/// The asked force's envelope decays with this time constant (s): to 60 % over the slowest
-/// stroke the robustness matrix asks for (1 Hz).
-const FORCE_ENVELOPE_DECAY_S: f64 = 2.0;
 /// A force counts as made when the allocation misses it by at most this fraction.
 const FORCE_MADE_FRACTION: f64 = 0.02;
 /// A turn toward more force must miss the asked force by this fraction less than staying.
@@ -365,12 +359,6 @@ pub struct ControlLoop {
     /// at the robot: the heading `field_follows_force` pulls along.
     pull_force_n: Vector2<f64>,
     fluid_moves: bool,
-    /// The asked force's recent peak (N): its magnitude, decaying over
-    /// `FORCE_ENVELOPE_DECAY_S`.
-    force_envelope_n: f64,
-    /// Until when (ns) the field does not pull: the pull's heading last missed the asked
-    /// force within `PULL_REACH_MEMORY_NS` of it.
-    pull_unreachable_until_ns: u64,
 }
 
 /// Commands remembered for matching frames to the currents in effect at their capture.
@@ -474,8 +462,6 @@ impl ControlLoop {
             magnet_offset_rad: 0.0,
             pull_force_n: Vector2::zeros(),
             fluid_moves: false,
-            pull_unreachable_until_ns: 0,
-            force_envelope_n: 0.0,
         }
     }
 
@@ -674,7 +660,6 @@ impl ControlLoop {
         force: &Vector2<f64>,
         slew: Option<(&[f64; MAX_COILS], f64)>,
         max_turn_rad: f64,
-        actuation_ns: u64,
     ) -> ([f64; MAX_COILS], Vector2<f64>) {
         let present = self.field_heading_rad;
         if self.config.field_heading_turn_deg.is_none() {
@@ -687,23 +672,7 @@ impl ControlLoop {
             let magnet = field_heading + magnet_offset;
             this.allocate_with_field(position, magnet, field_heading, force, slew)
         };
-        let mut pulling = self.pulling_heading(magnet_offset);
-        if let Some(pull) = pulling {
-            // Where the coils cannot make the stroke's force along the pull, heading there
-            // would turn the capsule back and forth with every stroke, or hold it where the
-            // next stroke outruns them: the pull must make the recent strokes' peak.
-            let peak = force * (self.force_envelope_n / force.norm().max(1e-12)).max(1.0);
-            let magnet = pull + magnet_offset;
-            let made_at_pull = self
-                .allocate_with_field(position, magnet, pull, &peak, slew)
-                .1;
-            if (peak - made_at_pull).norm() > peak.norm() * FORCE_MADE_FRACTION + 1e-12 {
-                self.pull_unreachable_until_ns = actuation_ns.saturating_add(PULL_REACH_MEMORY_NS);
-            }
-            if actuation_ns < self.pull_unreachable_until_ns {
-                pulling = None;
-            }
-        }
+        let pulling = self.pulling_heading(magnet_offset);
         let home = pulling.unwrap_or(self.config.field_heading_deg.to_radians());
         let stay = at(self, present);
         // A pulling heading (off the candidates' grid) is reached within half a step.
@@ -1164,9 +1133,6 @@ impl ControlLoop {
         let max_turn_rad = self.field_turn_budget(actuation_ns);
         self.pull_force_n +=
             (force - self.pull_force_n) * (1.0 - (-dt / PULL_FORCE_AVERAGE_S).exp());
-        self.force_envelope_n = force
-            .norm()
-            .max(self.force_envelope_n * (-dt / FORCE_ENVELOPE_DECAY_S).exp());
         self.fluid_moves = flow_mps.norm() > 0.0;
         let field_heading_before = self.field_heading_rad;
         let (mut currents, mut achieved) = self.allocate_turning(
@@ -1176,7 +1142,6 @@ impl ControlLoop {
             &force,
             slew,
             max_turn_rad,
-            actuation_ns,
         );
         self.field_turn_budget_rad = (self.field_turn_budget_rad
             - wrap_angle(self.field_heading_rad - field_heading_before).abs())
@@ -2084,7 +2049,7 @@ mod tests {
             // The magnet follows the field.
             let offset = wrap_angle(heading - turning.field_heading_rad);
             (_, achieved) =
-                turning.allocate_turning(&position, heading, offset, &force, None, FRAC_PI_4, 0);
+                turning.allocate_turning(&position, heading, offset, &force, None, FRAC_PI_4);
             let turned = wrap_angle(turning.field_heading_rad - heading).abs();
             assert!(turned <= 45f64.to_radians() + 1e-9, "turned {turned} rad");
             heading = turning.field_heading_rad;
@@ -2098,7 +2063,7 @@ mod tests {
         for _ in 0..4 {
             let offset = wrap_angle(heading - turning.field_heading_rad);
             let (_, made) =
-                turning.allocate_turning(&position, heading, offset, &small, None, FRAC_PI_4, 0);
+                turning.allocate_turning(&position, heading, offset, &small, None, FRAC_PI_4);
             assert!(
                 (made - small).norm() <= 0.02 * small.norm() + 1e-12,
                 "{made:?}"
@@ -2158,7 +2123,7 @@ mod tests {
             c.pull_force_n = force;
             c.fluid_moves = moving;
             for _ in 0..4 {
-                c.allocate_turning(&position, FRAC_PI_4, 0.0, &force, None, FRAC_PI_4, 0);
+                c.allocate_turning(&position, FRAC_PI_4, 0.0, &force, None, FRAC_PI_4);
             }
             let off_axis = wrap_angle(c.field_heading_rad - FRAC_PI_2).abs();
             let off_axis = off_axis.min(std::f64::consts::PI - off_axis);
@@ -2206,61 +2171,13 @@ mod tests {
         let mut heading = -FRAC_PI_4;
         let mut achieved = Vector2::zeros();
         for _ in 0..3 {
-            (_, achieved) = c.allocate_turning(&position, heading, 0.0, &force, None, FRAC_PI_4, 0);
+            (_, achieved) = c.allocate_turning(&position, heading, 0.0, &force, None, FRAC_PI_4);
             heading = c.field_heading_rad;
         }
         assert!(
             (force - achieved).norm() <= 0.02 * force.norm(),
             "at {:.0}°: {achieved:?}",
             heading.to_degrees()
-        );
-    }
-
-    #[test]
-    fn the_field_does_not_pull_along_an_axis_where_the_coils_miss_the_force() {
-        // The same force: pulled along its axis (≈ 132°) the coils miss it, at 45° they make
-        // it, so the field stays at 45° for as long as the pull's heading stays out of reach.
-        let position = Vector2::new(-0.011, 0.002);
-        let force = Vector2::new(-1.0e-4, 1.1e-4);
-        let mut c = beyond_loop(|c| {
-            c.field_heading_turn_deg = Some(45.0);
-            c.field_follows_force = true;
-        });
-        c.pull_force_n = force;
-        c.fluid_moves = true;
-        let pull = c.pulling_heading(0.0).unwrap();
-        assert!(misses(&c, &position, &force, pull.to_degrees()), "{pull}");
-        for frame in 0..4 {
-            let (_, made) = c.allocate_turning(
-                &position,
-                c.field_heading_rad,
-                0.0,
-                &force,
-                None,
-                FRAC_PI_4,
-                frame * 10_000_000,
-            );
-            assert!(
-                wrap_angle(c.field_heading_rad - FRAC_PI_4).abs() < 1e-9,
-                "frame {frame}: {}",
-                c.field_heading_rad.to_degrees()
-            );
-            assert!((force - made).norm() <= 0.02 * force.norm(), "{made:?}");
-        }
-        // A force the pull's heading makes is pulled along once the miss is a second old.
-        let small = force * 0.2;
-        c.pull_force_n = small;
-        c.force_envelope_n = small.norm();
-        let mut heading = c.field_heading_rad;
-        for frame in [1_100_000_000, 1_110_000_000, 1_120_000_000, 1_130_000_000] {
-            c.allocate_turning(&position, heading, 0.0, &small, None, FRAC_PI_4, frame);
-            heading = c.field_heading_rad;
-        }
-        assert!(
-            wrap_angle(heading - pull).abs() <= 7.5f64.to_radians() + 1e-9,
-            "{} against {}",
-            heading.to_degrees(),
-            pull.to_degrees()
         );
     }
 
