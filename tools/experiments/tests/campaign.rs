@@ -39,6 +39,28 @@ fn run_matrix(out: &Path, extra: &[&str]) -> Output {
 }
 
 #[test]
+fn every_trace_keeps_each_runs_truth_beyond_position() {
+    let out = scratch("traces");
+    let run = run_matrix(&out, &["--every-trace"]);
+    assert!(run.status.success(), "{}", text(&run));
+    for seed in ["s1", "s2"] {
+        let path = out.join(format!("campaign/traces/20cp_static_pid_{seed}.csv"));
+        let trace = millinav_experiments::read_truth(&path).expect("trace");
+        // The capsule moves along the route, its magnet along the 45° orientation field.
+        assert!(
+            trace.iter().any(|r| r.motion.velocity_mps.norm() > 1e-5),
+            "{seed}"
+        );
+        let heading = trace.last().unwrap().motion.heading_rad;
+        assert!(
+            (heading - std::f64::consts::FRAC_PI_4).abs() < 0.1,
+            "{seed}: heading {heading}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
 fn a_local_campaign_resumes_a_lost_cell_into_the_same_table() {
     let out = scratch("resume");
     let dir = out.to_string_lossy().into_owned();
