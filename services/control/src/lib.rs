@@ -128,9 +128,8 @@ pub struct ControlConfig {
     pub gain_estimation: GainEstimationConfig,
     /// Turn the orientation field (and with it the capsule) when the coils cannot make the
     /// asked force at the present heading, by at most this many degrees per command, toward
-    /// the heading where they make it or come closest, sought a quarter turn either way, past
-    /// what one command may turn (none: the field stays at `field_heading_deg`, as in the
-    /// paper). The force the coils can make in one direction depends several-fold on
+    /// the heading where they come closest (none: the field stays at `field_heading_deg`, as
+    /// in the paper). The force the coils can make in one direction depends several-fold on
     /// the magnet's heading, since F = (m·∇)B. Once the force is within reach again the field
     /// turns back toward `field_heading_deg` as far as the force stays within reach. Whatever
     /// this allows, the field turns no faster than the capsule follows it within one 15°
@@ -666,14 +665,14 @@ impl ControlLoop {
             // The field never turned: the magnet is where the frame shows it.
             return self.allocate(position, measured_heading, force, slew);
         }
+        let pulling = self.pulling_heading(magnet_offset);
+        let home = pulling.unwrap_or(self.config.field_heading_deg.to_radians());
         let miss = |achieved: &Vector2<f64>| (force - achieved).norm();
         let made = force.norm() * FORCE_MADE_FRACTION + 1e-12;
         let at = |this: &Self, field_heading: f64| {
             let magnet = field_heading + magnet_offset;
             this.allocate_with_field(position, magnet, field_heading, force, slew)
         };
-        let pulling = self.pulling_heading(magnet_offset);
-        let home = pulling.unwrap_or(self.config.field_heading_deg.to_radians());
         let stay = at(self, present);
         // A pulling heading (off the candidates' grid) is reached within half a step.
         let home_tolerance = if pulling.is_some() {
@@ -705,41 +704,6 @@ impl ControlLoop {
         }
         let (heading, chosen) = match best_home {
             Some(found) => found,
-            None if steps > 0 => {
-                // Nothing within this command's turn makes the force: where farther does, or
-                // comes closest, turn toward it as far as the turn allows. A quarter turn
-                // either way covers every axis (the magnet turned half a turn makes the same
-                // force with the currents reversed).
-                let quarter = (std::f64::consts::FRAC_PI_2 / step).round() as i32;
-                let mut goal: Option<(i32, f64)> = None;
-                let mut goal_in_reach = false;
-                let mut closest_miss = best.2;
-                for k in (-quarter..=quarter).filter(|k| k.abs() > steps) {
-                    let heading = wrap_angle(present + f64::from(k) * step);
-                    let candidate_miss = miss(&at(self, heading).1);
-                    if candidate_miss <= made {
-                        let nearer_home = goal.is_none_or(|(_, h)| {
-                            !goal_in_reach || toward_home(heading) < toward_home(h)
-                        });
-                        if nearer_home {
-                            goal = Some((k, heading));
-                            goal_in_reach = true;
-                        }
-                    } else if !goal_in_reach
-                        && candidate_miss < closest_miss * (1.0 - TURN_HYSTERESIS_FRACTION)
-                    {
-                        goal = Some((k, heading));
-                        closest_miss = candidate_miss;
-                    }
-                }
-                match goal {
-                    Some((k, _)) => {
-                        let heading = wrap_angle(present + f64::from(k.signum() * steps) * step);
-                        (heading, at(self, heading))
-                    }
-                    None => (best.0, best.1),
-                }
-            }
             None => (best.0, best.1),
         };
         self.field_heading_rad = heading;
@@ -2141,44 +2105,6 @@ mod tests {
                 );
             }
         }
-    }
-
-    /// Where the coils miss `force` (by more than 2 %) at field heading `heading_deg` (the
-    /// magnet along the field).
-    fn misses(
-        c: &ControlLoop,
-        position: &Vector2<f64>,
-        force: &Vector2<f64>,
-        heading_deg: f64,
-    ) -> bool {
-        let h = heading_deg.to_radians();
-        let (_, made) = c.allocate_with_field(position, h, h, force, None);
-        (force - made).norm() > 0.02 * force.norm()
-    }
-
-    #[test]
-    fn a_force_out_of_reach_of_one_command_turn_is_sought_farther() {
-        // In the inflow canal a force up and to the left is out of reach with the magnet at
-        // −45° and at every heading one 45° turn reaches, and within reach at 45°.
-        let position = Vector2::new(-0.011, 0.002);
-        let force = Vector2::new(-1.0e-4, 1.1e-4);
-        let mut c = beyond_loop(|c| c.field_heading_turn_deg = Some(45.0));
-        for deg in [-90.0, -75.0, -60.0, -45.0, -30.0, -15.0, 0.0] {
-            assert!(misses(&c, &position, &force, deg), "made at {deg}°");
-        }
-        assert!(!misses(&c, &position, &force, 45.0));
-        c.field_heading_rad = -FRAC_PI_4;
-        let mut heading = -FRAC_PI_4;
-        let mut achieved = Vector2::zeros();
-        for _ in 0..3 {
-            (_, achieved) = c.allocate_turning(&position, heading, 0.0, &force, None, FRAC_PI_4);
-            heading = c.field_heading_rad;
-        }
-        assert!(
-            (force - achieved).norm() <= 0.02 * force.norm(),
-            "at {:.0}°: {achieved:?}",
-            heading.to_degrees()
-        );
     }
 
     #[test]
