@@ -579,9 +579,11 @@ impl Campaign {
             campaign.write_manifest()?;
         } else {
             // The same cells of the same build: keep what is done, take the new settings (a
-            // resubmission may go to another partition).
+            // resubmission may go to another partition; the cells still to run may keep every
+            // trace).
             let mut kept = Self::open(&campaign.out)?;
             kept.manifest.slurm = campaign.manifest.slurm;
+            kept.manifest.every_trace = campaign.manifest.every_trace;
             kept.write_manifest()?;
             return Ok((kept, planned));
         }
