@@ -31,8 +31,10 @@ pub fn translational_damping(viscosity_pa_s: f64, length_m: f64, radius_m: f64) 
 /// Eq. 7-4.28), and the lubrication limit of Goldman, Cox & Brenner (*Chem. Eng. Sci.* 22,
 /// 637–651, 1967), 8/15 ln(r/gap) + 0.9588. For a capsule lying on the phantom floor, `radius_m`
 /// is its cross-section's radius: a sphere of that radius is the closest shape with a closed
-/// form (a cylinder parallel to the wall has a stronger, gap^-½, lubrication singularity, so this
-/// is a lower bound). NaN for a non-positive radius or a negative gap.
+/// form. Sliding along its axis a cylinder has a stronger, gap^-½, singularity
+/// ([`cylinder_axial_wall_friction`]); across its axis the gap^-½ terms of the lubrication
+/// film's shear and pressure cancel, and this logarithm is the closest closed form. NaN for a
+/// non-positive radius or a negative gap.
 pub fn wall_drag_factor_parallel(gap_m: f64, radius_m: f64) -> f64 {
     if !(radius_m > 0.0 && gap_m >= 0.0) {
         return f64::NAN;
@@ -48,6 +50,52 @@ pub fn wall_drag_factor_parallel(gap_m: f64, radius_m: f64) -> f64 {
         f64::INFINITY
     };
     faxen.max(lubrication).max(1.0)
+}
+
+/// Free-stream translational friction of a circular cylinder of length `length_m` and radius
+/// `radius_m` moving along its axis and across it, (axial, transverse) in N·s/m: Tirado & García
+/// de la Torre's fits to exact numerical results (*J. Chem. Phys.* 71, 2581–2587, 1979),
+/// f∥ = 2πμL / (ln p + γ∥) and f⊥ = 4πμL / (ln p + γ⊥), p = L / (2r), γ∥ = −0.207 + 0.980/p −
+/// 0.133/p², γ⊥ = 0.839 + 0.185/p + 0.233/p², valid for 2 ≤ p ≤ 30. For the paper's capsule
+/// (p = 2.64) that is 1.49× and 1.74× paper Eq. 7, which is the slender-body axial formula
+/// without end corrections. NaN outside L > 2r > 0, μ > 0.
+pub fn cylinder_translational_friction(
+    viscosity_pa_s: f64,
+    length_m: f64,
+    radius_m: f64,
+) -> (f64, f64) {
+    if !(viscosity_pa_s > 0.0 && radius_m > 0.0 && length_m > 2.0 * radius_m) {
+        return (f64::NAN, f64::NAN);
+    }
+    let p = length_m / (2.0 * radius_m);
+    let ln_p = p.ln();
+    let axial_end = -0.207 + 0.980 / p - 0.133 / (p * p);
+    let transverse_end = 0.839 + 0.185 / p + 0.233 / (p * p);
+    let two_pi_mu_l = 2.0 * std::f64::consts::PI * viscosity_pa_s * length_m;
+    (
+        two_pi_mu_l / (ln_p + axial_end),
+        2.0 * two_pi_mu_l / (ln_p + transverse_end),
+    )
+}
+
+/// Friction of a cylinder lying parallel to a plane wall with a gap `gap_m` and sliding along
+/// its own axis, N·s/m: 2πμL / arccosh(1 + gap/r). Axial motion of a long cylinder is a
+/// unidirectional Stokes flow, so the axial velocity is harmonic in the cross-section and the
+/// force per length is μU times the capacitance of a cylinder above a grounded plane (exact;
+/// e.g. Teng, Rallabandi, Stone & Ault, *J. Fluid Mech.* 938, A30, 2022, for the finite rod's
+/// lubrication limit). It grows as (r/gap)^½, far faster than a sphere's logarithm, and is
+/// meant for gaps where it exceeds the free-stream axial friction (below that the ends
+/// dominate). NaN for a non-positive radius, length or viscosity, or a negative gap.
+pub fn cylinder_axial_wall_friction(
+    viscosity_pa_s: f64,
+    length_m: f64,
+    radius_m: f64,
+    gap_m: f64,
+) -> f64 {
+    if !(viscosity_pa_s > 0.0 && radius_m > 0.0 && length_m > 0.0 && gap_m >= 0.0) {
+        return f64::NAN;
+    }
+    2.0 * std::f64::consts::PI * viscosity_pa_s * length_m / (1.0 + gap_m / radius_m).acosh()
 }
 
 /// Slender-body rotational drag of a capsule about a transverse axis, N·m·s:
@@ -142,6 +190,39 @@ mod tests {
     }
 
     use super::*;
+
+    #[test]
+    fn cylinder_friction_matches_tirado_de_la_torre_and_the_wall_limit() {
+        let (mu, l, r) = (0.020, 7.4e-3, 1.4e-3);
+        let (axial, transverse) = cylinder_translational_friction(mu, l, r);
+        let eq7 = translational_damping(mu, l, r);
+        // p = 2.643: ln p = 0.972; axial 2πμL/1.117, transverse 4πμL/1.914.
+        assert!((axial / eq7 - 1.491).abs() < 0.01, "{}", axial / eq7);
+        assert!(
+            (transverse / eq7 - 1.740).abs() < 0.01,
+            "{}",
+            transverse / eq7
+        );
+        // Their orientation average against the 1984 fit 3πμL/(ln p + 0.312 + 0.565/p − 0.1/p²).
+        let p: f64 = l / (2.0 * r);
+        let mean = 3.0 / (1.0 / axial + 2.0 / transverse);
+        let fit = 3.0 * std::f64::consts::PI * mu * l / (p.ln() + 0.312 + 0.565 / p - 0.1 / p / p);
+        assert!((mean / fit - 1.0).abs() < 0.03, "{mean} vs {fit}");
+        assert!(cylinder_translational_friction(mu, 2.0e-3, r).0.is_nan());
+        // Near the wall: 2πμL/√(2δ/r) to leading order, ×25 Eq. 7 at 3 µm.
+        let near = cylinder_axial_wall_friction(mu, l, r, 3e-6);
+        let leading = 2.0 * std::f64::consts::PI * mu * l / (2.0 * 3e-6 / r).sqrt();
+        assert!((near / leading - 1.0).abs() < 1e-3, "{near} vs {leading}");
+        assert!((near / eq7 - 25.5).abs() < 0.5, "{}", near / eq7);
+        assert!(cylinder_axial_wall_friction(mu, l, r, 0.0).is_infinite());
+        assert!(cylinder_axial_wall_friction(mu, l, r, -1e-6).is_nan());
+        let mut last = f64::INFINITY;
+        for gap in [1e-7, 1e-6, 1e-5, 1e-4, 1e-3] {
+            let f = cylinder_axial_wall_friction(mu, l, r, gap);
+            assert!(f < last);
+            last = f;
+        }
+    }
 
     #[test]
     fn damping_matches_rig_md() {

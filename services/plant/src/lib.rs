@@ -153,6 +153,19 @@ fn load_model(
         viscosity_pa_s: scenario.viscosity_pa_s(),
         density_kg_m3: scenario.fluid.density_kg_m3,
     };
+    if config.physics.drag_shape == model::DragShape::Cylinder {
+        // Tirado & García de la Torre's fits hold from length / diameter 2 on.
+        let aspect = rig.robot.length_m / rig.robot.diameter_m;
+        if !(aspect.is_finite() && aspect >= 2.0) {
+            return Err(ConfigError::new(format!(
+                "scenario {}: [plant] physics.drag_shape = \"cylinder\" needs a capsule at least \
+                 twice as long as it is wide; the rig {} [robot] length_m / diameter_m is {aspect:.2} \
+                 (use \"paper\")",
+                scenario.path.display(),
+                rig.path.display()
+            )));
+        }
+    }
     let flow: FlowMapChoice = scenario.section("flow")?;
     let steady_flow = flow
         .load(scenario)

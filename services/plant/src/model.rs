@@ -23,7 +23,7 @@ use fieldmaps::physics::{self, wrap_angle};
 use fieldmaps::rig::{FluidParams, RobotParams, SaturationCurve};
 use fieldmaps::rigfile::{RigPhantom, MAX_RIG_COILS};
 use fieldmaps::walls::WallField;
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix2, Vector2, Vector3};
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
@@ -71,6 +71,13 @@ pub struct PlantPhysicsConfig {
     /// 3–4 × for its own motion at micron gaps. Taking the flow map's speed as the speed at
     /// the capsule's centre (a capsule filling much of a shallow canal's depth), 1.7.
     pub floor_flow_factor: Option<f64>,
+    /// The capsule's shape for its translational drag. `paper`: paper Eq. 7, the same in every
+    /// direction, and on a floor the sphere's wall factor. `cylinder`: a circular cylinder,
+    /// whose friction along its axis differs from across it (Tirado & García de la Torre 1979,
+    /// 1.49× and 1.74× Eq. 7 for the paper's capsule) and which, lying on a floor, slides along
+    /// its axis against a gap^-½ film ([`physics::cylinder_axial_wall_friction`]: ×25 Eq. 7 at
+    /// 3 µm) and across it against the sphere's logarithm.
+    pub drag_shape: DragShape,
     /// Time-varying vortex in the recirculation zone (`[plant.physics.recirculation]`).
     pub recirculation: RecirculationConfig,
     /// Correlated flow noise (`[plant.physics.flow_noise]`).
@@ -90,9 +97,51 @@ impl Default for PlantPhysicsConfig {
             floor_extra_load_n: 0.0,
             floor_gap_m: None,
             floor_flow_factor: None,
+            drag_shape: DragShape::Paper,
             recirculation: RecirculationConfig::default(),
             flow_noise: FlowNoiseConfig::default(),
         }
+    }
+}
+
+/// `[plant.physics] drag_shape`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DragShape {
+    #[default]
+    Paper,
+    Cylinder,
+}
+
+/// Linear drag along the capsule's axis and across it (equal: the same in every direction),
+/// N·s/m.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AxialDrag {
+    pub axial_n_s_per_m: f64,
+    pub transverse_n_s_per_m: f64,
+}
+
+impl AxialDrag {
+    fn isotropic(c: f64) -> Self {
+        Self {
+            axial_n_s_per_m: c,
+            transverse_n_s_per_m: c,
+        }
+    }
+
+    fn is_isotropic(&self) -> bool {
+        self.axial_n_s_per_m == self.transverse_n_s_per_m
+    }
+
+    /// The mean of the two: what one number stands for (`PlantModel::linear_drag`).
+    fn mean(&self) -> f64 {
+        0.5 * (self.axial_n_s_per_m + self.transverse_n_s_per_m)
+    }
+
+    /// The drag tensor for a capsule whose axis is `axis` (unit): c⊥·I + (c∥ − c⊥)·a·aᵀ.
+    fn tensor(&self, axis: &Vector2<f64>) -> Matrix2<f64> {
+        Matrix2::identity() * self.transverse_n_s_per_m
+            + axis * axis.transpose() * (self.axial_n_s_per_m - self.transverse_n_s_per_m)
     }
 }
 
@@ -139,13 +188,50 @@ pub struct PlantModel {
     /// Recirculation vortex and noise modes of the true flow.
     pub disturbance: FlowDisturbance,
     seed: u64,
-    linear_drag_n_s_per_m: f64,
+    linear_drag: AxialDrag,
     /// Linear drag coefficient of the flow's push (differs from the capsule's own on a floor).
-    flow_coupling_n_s_per_m: f64,
+    flow_coupling: AxialDrag,
     quadratic_drag_n_s2_per_m2: f64,
     rotational_drag_n_m_s: f64,
     /// Apparent weight on the floor (m − ρV)·g, N (may be negative: buoyant).
     apparent_weight_n: f64,
+}
+
+/// The capsule's drag on its own motion and the flow's push on it, for `config`'s shape and
+/// floor.
+fn capsule_drag(
+    config: &PlantPhysicsConfig,
+    viscosity_pa_s: f64,
+    length_m: f64,
+    radius_m: f64,
+) -> (AxialDrag, AxialDrag) {
+    let eq7 = physics::translational_damping(viscosity_pa_s, length_m, radius_m);
+    let sphere_floor = config
+        .floor_gap_m
+        .map_or(1.0, |gap| physics::wall_drag_factor_parallel(gap, radius_m));
+    let own = match config.drag_shape {
+        DragShape::Paper => AxialDrag::isotropic(eq7 * sphere_floor),
+        DragShape::Cylinder => {
+            let (axial, transverse) =
+                physics::cylinder_translational_friction(viscosity_pa_s, length_m, radius_m);
+            let axial_on_floor = config.floor_gap_m.map_or(axial, |gap| {
+                physics::cylinder_axial_wall_friction(viscosity_pa_s, length_m, radius_m, gap)
+                    .max(axial)
+            });
+            AxialDrag {
+                axial_n_s_per_m: axial_on_floor,
+                transverse_n_s_per_m: transverse * sphere_floor,
+            }
+        }
+    };
+    // With `floor_flow_factor` the flow pushes with that factor of Eq. 7 in every direction;
+    // without, as hard as the capsule's own motion is braked (a capsule that moves with the
+    // fluid feels nothing).
+    let flow = match config.floor_flow_factor {
+        Some(factor) => AxialDrag::isotropic(eq7 * factor),
+        None => own,
+    };
+    (own, flow)
 }
 
 /// [`PlantModel::flow_noise_response`].
@@ -177,13 +263,8 @@ impl PlantModel {
             *g = 1.0 + gain_noise.sample(&mut rng);
         }
         let radius = robot.diameter_m / 2.0;
-        let floor_factor = config
-            .floor_gap_m
-            .map_or(1.0, |gap| physics::wall_drag_factor_parallel(gap, radius));
-        let free_stream =
-            physics::translational_damping(fluid.viscosity_pa_s, robot.length_m, radius);
-        let linear = free_stream * floor_factor;
-        let flow_coupling = free_stream * config.floor_flow_factor.unwrap_or(floor_factor);
+        let (linear, flow_coupling) =
+            capsule_drag(&config, fluid.viscosity_pa_s, robot.length_m, radius);
         // Projected area of the capsule seen broadside and end-on, averaged.
         let area = 0.5 * (robot.diameter_m * robot.length_m)
             + 0.5 * std::f64::consts::PI * radius * radius;
@@ -209,16 +290,23 @@ impl PlantModel {
             saturation: Vec::new(),
             disturbance,
             seed,
-            linear_drag_n_s_per_m: linear,
-            flow_coupling_n_s_per_m: flow_coupling,
+            linear_drag: linear,
+            flow_coupling,
             quadratic_drag_n_s2_per_m2: quadratic,
             rotational_drag_n_m_s: rotational,
             apparent_weight_n: apparent_weight,
         }
     }
 
+    /// The linear drag on the capsule's own motion (with `drag_shape = "cylinder"` the mean of
+    /// its axial and transverse drag), N·s/m.
     pub fn linear_drag(&self) -> f64 {
-        self.linear_drag_n_s_per_m
+        self.linear_drag.mean()
+    }
+
+    /// The linear drag along the capsule's axis and across it.
+    pub fn axial_drag(&self) -> AxialDrag {
+        self.linear_drag
     }
 
     /// How the flow noise moves the capsule, linearised: the moving mass, the drag on its own
@@ -227,8 +315,8 @@ impl PlantModel {
     pub fn flow_noise_response(&self) -> FlowNoiseResponse {
         FlowNoiseResponse {
             moving_mass_kg: self.robot.mass_kg + self.robot.added_mass_kg,
-            linear_drag_n_s_per_m: self.linear_drag_n_s_per_m,
-            flow_coupling_n_s_per_m: self.flow_coupling_n_s_per_m,
+            linear_drag_n_s_per_m: self.linear_drag.mean(),
+            flow_coupling_n_s_per_m: self.flow_coupling.mean(),
             noise_rms_speed_mps: self.disturbance.noise_rms_speed_mps(),
             correlation_time_s: self.disturbance.noise_correlation_time_s(),
         }
@@ -391,9 +479,20 @@ impl PlantModel {
         let quadratic = -relative * (self.quadratic_drag_n_s2_per_m2 * relative.norm());
         let mass = self.robot.mass_kg + self.robot.added_mass_kg;
         // Semi-implicit in the linear drag, which is the stiff term at low viscosity.
-        let c = self.linear_drag_n_s_per_m;
-        let explicit = force + quadratic + flow * self.flow_coupling_n_s_per_m;
-        state.velocity_mps = (state.velocity_mps + explicit * (h / mass)) / (1.0 + c * h / mass);
+        if self.linear_drag.is_isotropic() && self.flow_coupling.is_isotropic() {
+            let c = self.linear_drag.axial_n_s_per_m;
+            let explicit = force + quadratic + flow * self.flow_coupling.axial_n_s_per_m;
+            state.velocity_mps =
+                (state.velocity_mps + explicit * (h / mass)) / (1.0 + c * h / mass);
+        } else {
+            let axis = Vector2::new(state.heading_rad.cos(), state.heading_rad.sin());
+            let explicit = force + quadratic + self.flow_coupling.tensor(&axis) * flow;
+            let implicit = Matrix2::identity() + self.linear_drag.tensor(&axis) * (h / mass);
+            // Symmetric positive definite (both drags > 0), so always invertible.
+            state.velocity_mps = implicit.try_inverse().map_or(Vector2::zeros(), |inverse| {
+                inverse * (state.velocity_mps + explicit * (h / mass))
+            });
+        }
         let mu = self.config.floor_friction_coefficient;
         let normal_load = (self.apparent_weight_n + pull_down_n).max(0.0)
             + self.config.floor_extra_load_n.max(0.0);

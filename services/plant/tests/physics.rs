@@ -364,3 +364,89 @@ fn a_command_delay_drives_the_previous_command_first() {
     m.step_with_command_delay(&mut whole, &previous, &next, FRAME_S, 2.0 * FRAME_S);
     assert_eq!(held.position_m, whole.position_m);
 }
+
+/// The drag tensor of `m`'s capsule at `heading_rad`: c⊥·I + (c∥ − c⊥)·a·aᵀ.
+fn drag_tensor(m: &PlantModel, heading_rad: f64) -> nalgebra::Matrix2<f64> {
+    let drag = m.axial_drag();
+    let axis = Vector2::new(heading_rad.cos(), heading_rad.sin());
+    nalgebra::Matrix2::identity() * drag.transverse_n_s_per_m
+        + axis * axis.transpose() * (drag.axial_n_s_per_m - drag.transverse_n_s_per_m)
+}
+
+#[test]
+fn a_cylinder_moves_along_its_axis_more_easily_than_across_it() {
+    let cylinder = |floor_gap_m| PlantPhysicsConfig {
+        drag_shape: millinav_plant::model::DragShape::Cylinder,
+        floor_gap_m,
+        ..linear_only()
+    };
+    let free = model(FlowMap::zero(), cylinder(None), 1);
+    let paper = model(FlowMap::zero(), linear_only(), 1);
+    let eq7 = paper.linear_drag();
+    let drag = free.axial_drag();
+    // Tirado & García de la Torre for p = 2.64: 1.49× and 1.74× Eq. 7.
+    assert!((drag.axial_n_s_per_m / eq7 - 1.49).abs() < 0.01, "{drag:?}");
+    assert!(
+        (drag.transverse_n_s_per_m / eq7 - 1.74).abs() < 0.01,
+        "{drag:?}"
+    );
+    // On a 3 µm film sliding along the axis costs ×25 Eq. 7, across it the sphere's ×4.2.
+    let on_floor = model(FlowMap::zero(), cylinder(Some(3e-6)), 1);
+    let drag = on_floor.axial_drag();
+    assert!((drag.axial_n_s_per_m / eq7 - 25.4).abs() < 0.5, "{drag:?}");
+    let sphere = fieldmaps::physics::wall_drag_factor_parallel(3e-6, 1.4e-3);
+    assert!(
+        (drag.transverse_n_s_per_m / eq7 / 1.74 - sphere).abs() < 0.02,
+        "{drag:?}"
+    );
+    // A steady pull: the velocity is the tensor's inverse times the force at the capsule's
+    // heading, off the force's direction where the pull is not along the axis.
+    for m in [&free, &on_floor] {
+        let mut s = m.initial_state(ra_start(), 0.3);
+        for _ in 0..200 {
+            m.step(&mut s, &currents(0.02, 9), FRAME_S);
+        }
+        let expected = drag_tensor(m, s.heading_rad)
+            .try_inverse()
+            .expect("positive drags")
+            * s.last_magnetic_force_n;
+        let rel = (s.velocity_mps - expected).norm() / expected.norm();
+        assert!(expected.norm() > 1e-5, "test needs a real force");
+        assert!(rel < 0.01, "relative error {rel}");
+    }
+}
+
+#[test]
+fn a_cylinder_on_the_floor_drifts_in_the_flow_faster_across_than_along_its_axis() {
+    let uniform = FlowMap {
+        velocity_mps: vec![Vector2::new(2e-3, 0.0); 4],
+        ..FlowMap::zero()
+    };
+    let config = PlantPhysicsConfig {
+        drag_shape: millinav_plant::model::DragShape::Cylinder,
+        floor_gap_m: Some(3e-6),
+        floor_flow_factor: Some(1.7),
+        pulsation_amplitude: 0.0,
+        ..steady_only(linear_only())
+    };
+    let m = model(uniform, config, 3);
+    let eq7 = model(FlowMap::zero(), linear_only(), 3).linear_drag();
+    let drift = |heading: f64| {
+        let mut s = m.initial_state(ra_start(), heading);
+        for _ in 0..100 {
+            m.step(&mut s, &[0.0; COIL_COUNT], FRAME_S);
+        }
+        s.velocity_mps
+    };
+    let drag = m.axial_drag();
+    let along = drift(0.0);
+    let across = drift(std::f64::consts::FRAC_PI_2);
+    let expected_along = 2e-3 * 1.7 * eq7 / drag.axial_n_s_per_m;
+    let expected_across = 2e-3 * 1.7 * eq7 / drag.transverse_n_s_per_m;
+    assert!((along.x / expected_along - 1.0).abs() < 0.01, "{along:?}");
+    assert!(
+        (across.x / expected_across - 1.0).abs() < 0.01,
+        "{across:?}"
+    );
+    assert!(along.y.abs() < 1e-9 && across.y.abs() < 1e-9);
+}

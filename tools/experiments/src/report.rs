@@ -567,11 +567,16 @@ pub fn table_header(mode: &str, base: &Scenario) -> anyhow::Result<String> {
     let gain_error = get(&["plant", "physics", "coil_gain_error_std"])
         .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
         .unwrap_or(millinav_plant::model::PlantPhysicsConfig::default().coil_gain_error_std);
-    let floor = get(&["plant", "physics", "floor_gap_m"])
+    let cylinder =
+        get(&["plant", "physics", "drag_shape"]).and_then(toml::Value::as_str) == Some("cylinder");
+    let mut floor = get(&["plant", "physics", "floor_gap_m"])
         .and_then(|v| v.as_float())
         .map_or(String::new(), |gap| {
             format!(", capsule on the floor ({:.0} µm gap)", gap * 1e6)
         });
+    if cylinder {
+        floor.push_str(", the capsule's drag a cylinder's");
+    }
     let command_delay = get(&["plant", "command_delay_ms"])
         .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
         .filter(|ms| *ms > 0.0)
