@@ -83,6 +83,14 @@ pub struct ControlConfig {
     /// field to settle before it learns from a frame. 0 (default): coils that follow within a
     /// frame.
     pub coil_time_constant_ms: f64,
+    /// The capsule's translational drag as the lab measured it, over paper Eq. 7's c_t (which
+    /// every controller, the latency predictor and the velocity observer assume). A capsule
+    /// lying on the phantom floor drags several times Eq. 7 (a cylinder on a 30 µm film ×5–8,
+    /// README "What the twin lacks"), and a loop that assumes far too little drag feeds the
+    /// physical damping back through its observer across the delay: at the paper's 10 Hz with
+    /// 60 ms, 8× the nominal drag lost still 20 cP fluid. Measure it as force over terminal
+    /// speed in still fluid (README, "Telling control the capsule's drag"). 1 (default): Eq. 7.
+    pub drag_factor: f64,
     /// ω0 of paper Eq. 2 (N/T): weight of the field rows against the force rows.
     pub omega0_n_per_t: f64,
     /// After the last good pose, hold the field this long, then go safe.
@@ -203,6 +211,7 @@ impl Default for ControlConfig {
             field_magnitude_mt: None,
             aligning_torque_n_m: physics::DEFAULT_ALIGNING_TORQUE_N_M,
             coil_time_constant_ms: 0.0,
+            drag_factor: 1.0,
             omega0_n_per_t: 0.05,
             hold_timeout_ms: 300.0,
             max_speed_mps: 0.3,
@@ -381,7 +390,7 @@ impl ControlLoop {
                 viscosity_pa_s,
                 robot.length_m,
                 robot.diameter_m / 2.0,
-            ),
+            ) * config.drag_factor,
         };
         let mpc = config.mpc_gains(&rig, reference.waypoints());
         let coil_ids = config.coil_ids(&rig);
@@ -1238,6 +1247,7 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
         0.0,
         false,
     )?;
+    at_least("drag_factor", config.drag_factor, 0.0, true)?;
     at_least("omega0_n_per_t", config.omega0_n_per_t, 0.0, true)?;
     at_least("field_row_weight", config.field_row_weight, 0.0, true)?;
     at_least("replan_clearance_mm", config.replan_clearance_mm, 0.0, true)?;
@@ -1836,6 +1846,9 @@ mod tests {
 
         let error = refused("coils", "coil_time_constant_ms = -5.0");
         assert!(error.contains("[control] coil_time_constant_ms"), "{error}");
+
+        let error = refused("drag", "drag_factor = 0.0");
+        assert!(error.contains("[control] drag_factor"), "{error}");
 
         let error = refused("limits", "[control.limits]\nmax_current_a = 0.0");
         assert!(
