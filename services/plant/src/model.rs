@@ -116,12 +116,12 @@ pub enum DragShape {
 /// Linear drag along the capsule's axis and across it (equal: the same in every direction),
 /// N·s/m.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct AxialDrag {
+pub struct CapsuleDrag {
     pub axial_n_s_per_m: f64,
     pub transverse_n_s_per_m: f64,
 }
 
-impl AxialDrag {
+impl CapsuleDrag {
     fn isotropic(c: f64) -> Self {
         Self {
             axial_n_s_per_m: c,
@@ -188,9 +188,9 @@ pub struct PlantModel {
     /// Recirculation vortex and noise modes of the true flow.
     pub disturbance: FlowDisturbance,
     seed: u64,
-    linear_drag: AxialDrag,
+    linear_drag: CapsuleDrag,
     /// Linear drag coefficient of the flow's push (differs from the capsule's own on a floor).
-    flow_coupling: AxialDrag,
+    flow_coupling: CapsuleDrag,
     quadratic_drag_n_s2_per_m2: f64,
     rotational_drag_n_m_s: f64,
     /// Apparent weight on the floor (m − ρV)·g, N (may be negative: buoyant).
@@ -204,13 +204,13 @@ fn capsule_drag(
     viscosity_pa_s: f64,
     length_m: f64,
     radius_m: f64,
-) -> (AxialDrag, AxialDrag) {
+) -> (CapsuleDrag, CapsuleDrag) {
     let eq7 = physics::translational_damping(viscosity_pa_s, length_m, radius_m);
     let sphere_floor = config
         .floor_gap_m
         .map_or(1.0, |gap| physics::wall_drag_factor_parallel(gap, radius_m));
     let own = match config.drag_shape {
-        DragShape::Paper => AxialDrag::isotropic(eq7 * sphere_floor),
+        DragShape::Paper => CapsuleDrag::isotropic(eq7 * sphere_floor),
         DragShape::Cylinder => {
             let (axial, transverse) =
                 physics::cylinder_translational_friction(viscosity_pa_s, length_m, radius_m);
@@ -218,7 +218,7 @@ fn capsule_drag(
                 physics::cylinder_axial_wall_friction(viscosity_pa_s, length_m, radius_m, gap)
                     .max(axial)
             });
-            AxialDrag {
+            CapsuleDrag {
                 axial_n_s_per_m: axial_on_floor,
                 transverse_n_s_per_m: transverse * sphere_floor,
             }
@@ -228,7 +228,7 @@ fn capsule_drag(
     // without, as hard as the capsule's own motion is braked (a capsule that moves with the
     // fluid feels nothing).
     let flow = match config.floor_flow_factor {
-        Some(factor) => AxialDrag::isotropic(eq7 * factor),
+        Some(factor) => CapsuleDrag::isotropic(eq7 * factor),
         None => own,
     };
     (own, flow)
@@ -305,7 +305,7 @@ impl PlantModel {
     }
 
     /// The linear drag along the capsule's axis and across it.
-    pub fn axial_drag(&self) -> AxialDrag {
+    pub fn axial_drag(&self) -> CapsuleDrag {
         self.linear_drag
     }
 
