@@ -32,9 +32,11 @@ pub fn translational_damping(viscosity_pa_s: f64, length_m: f64, radius_m: f64) 
 /// 637–651, 1967), 8/15 ln(r/gap) + 0.9588. For a capsule lying on the phantom floor, `radius_m`
 /// is its cross-section's radius: a sphere of that radius is the closest shape with a closed
 /// form. Sliding along its axis a cylinder has a stronger, gap^-½, singularity
-/// ([`cylinder_axial_wall_friction`]); across its axis the gap^-½ terms of the lubrication
-/// film's shear and pressure cancel, and this logarithm is the closest closed form. NaN for a
-/// non-positive radius or a negative gap.
+/// ([`cylinder_axial_wall_friction`]). Across its axis the film under it carries the Couette
+/// shear and a pressure-driven back-flow; in Reynolds' lubrication equation with gap
+/// h = δ + x²/2r their gap^-½ contributions to the wall's shear cancel (flux 2/3 of the
+/// surface speed × δ), so the force is of lower order, and this logarithm is the closest
+/// closed form. NaN for a non-positive radius or a negative gap.
 pub fn wall_drag_factor_parallel(gap_m: f64, radius_m: f64) -> f64 {
     if !(radius_m > 0.0 && gap_m >= 0.0) {
         return f64::NAN;
@@ -81,9 +83,9 @@ pub fn cylinder_translational_friction(
 /// Friction of a cylinder lying parallel to a plane wall with a gap `gap_m` and sliding along
 /// its own axis, N·s/m: 2πμL / arccosh(1 + gap/r). Axial motion of a long cylinder is a
 /// unidirectional Stokes flow, so the axial velocity is harmonic in the cross-section and the
-/// force per length is μU times the capacitance of a cylinder above a grounded plane (exact;
-/// e.g. Teng, Rallabandi, Stone & Ault, *J. Fluid Mech.* 938, A30, 2022, for the finite rod's
-/// lubrication limit). It grows as (r/gap)^½, far faster than a sphere's logarithm, and is
+/// force per length is μU times the capacitance per length of a cylinder above a grounded plane,
+/// 2π / arccosh(h/r) with h the axis height (exact for an infinite cylinder; the ends of a
+/// finite one add to it). It grows as (r/gap)^½, far faster than a sphere's logarithm, and is
 /// meant for gaps where it exceeds the free-stream axial friction (below that the ends
 /// dominate). NaN for a non-positive radius, length or viscosity, or a negative gap.
 pub fn cylinder_axial_wall_friction(
