@@ -70,6 +70,12 @@ pub struct LatencyConfig {
     /// fit, however coarse, is the better guess. Measured at 10 Hz (README, "The lead across a
     /// long delay"): the lead costs at 6 and 21 ms and gains at 36, 66 and 106 ms. 0: always.
     pub lead_min_delay_periods: f64,
+    /// The largest turn of the orientation field at the capsule (rad) that the asked force's
+    /// gradient may cause across the predictor's expected miss (`StatePredictor::
+    /// expected_miss_m`): the asked force is bounded to this × |m||B| / miss. 0: no bound.
+    /// It binds where the prediction has failed (a stroke of the jet the model did not
+    /// foresee), not while it holds (README, "Bounding the force by the predictor's miss").
+    pub max_field_turn_at_miss_rad: f64,
 }
 
 impl Default for LatencyConfig {
@@ -84,6 +90,7 @@ impl Default for LatencyConfig {
             pulsation_hz: None,
             lead_min_poses_per_period: 10.0,
             lead_min_delay_periods: 0.08,
+            max_field_turn_at_miss_rad: 0.0,
         }
     }
 }
@@ -91,7 +98,7 @@ impl Default for LatencyConfig {
 impl LatencyConfig {
     /// The first field that is out of range, with why.
     pub fn invalid_field(&self) -> Option<(&'static str, String)> {
-        let checks: [(&'static str, f64, bool); 6] = [
+        let checks: [(&'static str, f64, bool); 7] = [
             ("unstamped_delay_ms", self.unstamped_delay_ms, false),
             ("max_pose_age_ms", self.max_pose_age_ms, true),
             ("disturbance_delays", self.disturbance_delays, false),
@@ -106,6 +113,11 @@ impl LatencyConfig {
                 false,
             ),
             ("lead_min_delay_periods", self.lead_min_delay_periods, false),
+            (
+                "max_field_turn_at_miss_rad",
+                self.max_field_turn_at_miss_rad,
+                false,
+            ),
         ];
         if let Some(bad) = self
             .disturbance_delays_candidates
@@ -387,6 +399,19 @@ impl StatePredictor {
             (self.residual_sq_m2 / self.motion_sq_m2).sqrt().min(1.0)
         } else {
             0.0
+        }
+    }
+
+    /// How far the robot may be from where the model puts it `horizon_s` after a pose: the
+    /// recent RMS miss of the motion between poses (over `MOTION_SHARE_WINDOW_S`), grown in
+    /// proportion to the horizon, never below one pose interval's (a command acts that long).
+    /// 0 before two poses.
+    pub fn expected_miss_m(&self, horizon_s: f64) -> f64 {
+        match self.pose_interval_s {
+            Some(interval_s) if interval_s > 0.0 => {
+                self.residual_sq_m2.sqrt() * (horizon_s / interval_s).max(1.0)
+            }
+            _ => 0.0,
         }
     }
 
@@ -857,6 +882,37 @@ pub(crate) mod tests {
             ..LatencyConfig::default()
         };
         assert_eq!(config.invalid_field().unwrap().0, "lead_min_delay_periods");
+        let config = LatencyConfig {
+            max_field_turn_at_miss_rad: -0.2,
+            ..LatencyConfig::default()
+        };
+        assert_eq!(
+            config.invalid_field().unwrap().0,
+            "max_field_turn_at_miss_rad"
+        );
         assert!(LatencyConfig::default().invalid_field().is_none());
+    }
+
+    #[test]
+    fn the_expected_miss_is_the_rms_miss_per_pose_grown_with_the_horizon() {
+        let mut predictor = StatePredictor::new(LatencyConfig::default(), MODEL);
+        assert_eq!(predictor.expected_miss_m(0.1), 0.0);
+        // No force: the model expects no motion, and each pose 0.1 s later is 1 mm further on.
+        for k in 0..200u64 {
+            let position = Vector2::new(1e-3 * k as f64, 0.0);
+            predictor.predict(
+                position,
+                ns(0.1 * k as f64),
+                ns(0.1 * k as f64),
+                Vector2::zeros(),
+            );
+            predictor.commanded(ns(0.1 * k as f64), Vector2::zeros(), Vector2::zeros());
+        }
+        // The disturbance estimate learns the drift, so the miss falls below the 1 mm a pose.
+        let miss = predictor.expected_miss_m(0.1);
+        assert!(miss > 0.0 && miss < 1e-3, "{miss}");
+        assert!((predictor.expected_miss_m(0.3) - 3.0 * miss).abs() < 1e-12);
+        // Never less than one pose interval's miss: the command acts that long.
+        assert_eq!(predictor.expected_miss_m(0.01), miss);
     }
 }

@@ -217,6 +217,13 @@ impl PredictorBank {
             .predictor
             .unpredicted_motion_share()
     }
+
+    /// See [`StatePredictor::expected_miss_m`] (the active candidate's).
+    pub fn expected_miss_m(&self, horizon_s: f64) -> f64 {
+        self.candidates[self.active]
+            .predictor
+            .expected_miss_m(horizon_s)
+    }
 }
 
 #[cfg(test)]
