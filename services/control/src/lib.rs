@@ -797,9 +797,6 @@ impl ControlLoop {
         self.magnet_offset_rad
     }
 
-    /// How far the field may turn for a command acting at `actuation_ns` (rad): the budget
-    /// grown at the capsule's turning rate since the last command, up to
-    /// `field_heading_turn_deg`.
     /// The largest force worth asking for a pose `pose_age_s` old at actuation, with
     /// `[control.latency] max_field_turn_at_miss_rad` set. F = (m·∇)B: the gradient that makes
     /// a force F is at least |F|/|m|, so at a capsule δ from where the allocation placed the
@@ -813,6 +810,9 @@ impl ControlLoop {
             .then(|| turn_rad * self.robot.magnet_moment_am2 * self.field_magnitude_t / miss_m)
     }
 
+    /// How far the field may turn for a command acting at `actuation_ns` (rad): the budget
+    /// grown at the capsule's turning rate since the last command, up to
+    /// `field_heading_turn_deg`.
     fn field_turn_budget(&mut self, actuation_ns: u64) -> f64 {
         let cap = self
             .config
