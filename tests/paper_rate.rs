@@ -3,8 +3,7 @@
 //! the auto-scheduled SMC-DOB completes still fluid and the 7 cm/s flow the paper ran, at both
 //! viscosities, without hand retuning, below the paper's SMC-DOB RMSE in still fluid and within
 //! 1.5x of it in flow, and the paper-gain baselines it is compared with do worse. The 10 cm/s
-//! cells are lost at this delay (README); nothing here asserts that. One seed per cell (the
-//! matrix runs three).
+//! cells: README; nothing here asserts them. One seed per cell (the matrix runs three).
 
 use millinav_experiments::report::paper_smc_dob_rmse_mm;
 use millinav_experiments::{fast_run, Cell, FlowSetting};
@@ -48,8 +47,8 @@ fn scheduled_smc_dob_completes_still_fluid_and_7_cm_s_at_the_papers_pipeline() {
             let m = run(viscosity_cp, flow, "smc-dob-auto");
             let bound = factor * paper_smc_dob_rmse_mm(viscosity_cp, flow).expect("paper RMSE");
             assert!(m.completed, "{viscosity_cp} cP {flow:?} did not complete");
-            // Seed 1 of the committed matrix (results/results.csv, 2026-11-29): 1.31 mm at
-            // 20 cP 7 cm/s against the paper's 1.00, 1.48 at 4.3 cP against 1.60; 0.05 / 0.05 mm
+            // Seed 1 of the committed matrix (results/results.csv, 2026-12-02): 1.00 mm at
+            // 20 cP 7 cm/s against the paper's 1.00, 0.98 at 4.3 cP against 1.60; 0.04 / 0.04 mm
             // in still fluid.
             assert!(
                 m.rmse_mm <= bound,
@@ -67,7 +66,14 @@ fn baselines_fail_or_degrade_at_low_viscosity_at_10_hz() {
     let mpc = run(4.3, FlowSetting::Static, "mpc");
     let without_dob = run(4.3, FlowSetting::Static, "smc-auto");
     assert!(auto.completed);
-    assert!(!pid.completed, "PID completed 4.3 cP at 10 Hz");
+    // The paper's PID failed here. Through our latency compensation with its force bound
+    // (2026-12-02) it completes, at 80x the scheduled SMC-DOB's RMSE (seed 1: 4.05 against
+    // 0.05 mm); fed the stale pose as the paper's loop was, it fails (README, "Calibration").
+    assert!(
+        !pid.completed || pid.rmse_mm > 10.0 * auto.rmse_mm,
+        "PID close to SMC-DOB at 4.3 cP at 10 Hz: {:.2} mm",
+        pid.rmse_mm
+    );
     assert!(mpc.rmse_mm > 10.0 * auto.rmse_mm, "MPC close to SMC-DOB");
     assert!(
         without_dob.rmse_mm > 2.0 * auto.rmse_mm,
@@ -95,6 +101,8 @@ fn told_the_capsules_drag_the_scheduled_dob_holds_a_cylinder_on_the_floor_at_the
     // A cylinder on a 30 µm film drags 5–8x paper Eq. 7. Untold, the observer takes the extra
     // drag for a disturbance and cancels it a delay late: still 20 cP fluid was lost at the
     // paper's 10 Hz and 60 ms (13.5 mm, 0/3 seeds; README "Telling control the capsule's drag").
+    // Since the force bound (2026-12-02) the untold loop is no longer thrown, but it rings
+    // above the paper's RMSE (seed 1: 0.97 mm against 0.49; told 0.03 mm).
     let gap_m = 3e-5;
     let cell = Cell {
         viscosity_cp: 20.0,
@@ -140,8 +148,12 @@ fn told_the_capsules_drag_the_scheduled_dob_holds_a_cylinder_on_the_floor_at_the
     assert!((5.0..8.0).contains(&measured), "drag factor {measured}");
     let untold = run_told(None);
     let told = run_told(Some(measured));
-    assert!(!untold.completed, "untold held at {:.2} mm", untold.rmse_mm);
-    assert!(told.completed);
     let paper = paper_smc_dob_rmse_mm(20.0, FlowSetting::Static).expect("paper RMSE");
+    assert!(
+        !untold.completed || untold.rmse_mm > paper,
+        "untold held at {:.2} mm",
+        untold.rmse_mm
+    );
+    assert!(told.completed);
     assert!(told.rmse_mm < paper, "told: RMSE {:.2} mm", told.rmse_mm);
 }

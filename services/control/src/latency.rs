@@ -50,7 +50,7 @@ pub struct LatencyConfig {
     /// Candidate values of `disturbance_delays` to choose from while running: each predicts,
     /// and the one whose predictions the later poses confirmed best feeds the controller
     /// (`crate::predictor_bank`; README, "Choosing the disturbance bandwidth from the data").
-    /// Empty: `disturbance_delays` alone.
+    /// Default 1, 2 and 4 delays; empty: `disturbance_delays` alone.
     pub disturbance_delays_candidates: Vec<f64>,
     /// Pulsation rate of the flow (Hz; the pump's stroke rate, which the lab sets): the
     /// disturbance estimate then also carries a sinusoid at this rate (amplitude and phase
@@ -72,9 +72,10 @@ pub struct LatencyConfig {
     pub lead_min_delay_periods: f64,
     /// The largest turn of the orientation field at the capsule (rad) that the asked force's
     /// gradient may cause across the predictor's expected miss (`StatePredictor::
-    /// expected_miss_m`): the asked force is bounded to this × |m||B| / miss. 0: no bound.
-    /// It binds where the prediction has failed (a stroke of the jet the model did not
-    /// foresee), not while it holds (README, "Bounding the force by the predictor's miss").
+    /// expected_miss_m`): the asked force is bounded to this × |m||B| / miss. 0: no bound;
+    /// default 0.2, and none with `compensate = false`. It binds where the prediction has
+    /// failed (a stroke of the jet the model did not foresee), not while it holds (README,
+    /// "Bounding the force by the predictor's miss").
     pub max_field_turn_at_miss_rad: f64,
 }
 
@@ -86,11 +87,11 @@ impl Default for LatencyConfig {
             max_pose_age_ms: 500.0,
             disturbance_delays: 4.0,
             disturbance_time_constant_ms: 100.0,
-            disturbance_delays_candidates: Vec::new(),
+            disturbance_delays_candidates: vec![1.0, 2.0, 4.0],
             pulsation_hz: None,
             lead_min_poses_per_period: 10.0,
             lead_min_delay_periods: 0.08,
-            max_field_turn_at_miss_rad: 0.0,
+            max_field_turn_at_miss_rad: 0.2,
         }
     }
 }

@@ -804,6 +804,10 @@ impl ControlLoop {
     /// |F|·δ/(|m||B|). Past about a radian the magnet follows a field that pushes it the wrong
     /// way and the capsule is thrown (README, "Bounding the force by the predictor's miss").
     fn miss_force_cap_n(&self, pose_age_s: f64) -> Option<f64> {
+        // Part of the compensation: a loop fed the stale pose (the paper's, as it ran) has none.
+        if !self.config.latency.compensate {
+            return None;
+        }
         let turn_rad = self.config.latency.max_field_turn_at_miss_rad;
         let miss_m = self.predictor.expected_miss_m(pose_age_s);
         (turn_rad > 0.0 && miss_m > 0.0)
@@ -1173,6 +1177,7 @@ impl ControlLoop {
         self.record_issued(actuation_ns, currents);
         self.record_field(actuation_ns, Some(self.field_heading_rad));
         self.controller.applied(achieved, at_ratings);
+        self.predictor.achieved(actuation_ns, force, achieved);
         self.predictor.commanded(actuation_ns, achieved, flow_mps);
         if let Some(observer) = &mut self.observer {
             observer.applied(achieved, flow_mps);
