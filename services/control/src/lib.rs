@@ -303,8 +303,9 @@ pub struct Decision {
     pub disturbance_delays: f64,
     /// What this pose's heading did to the coil-gain estimate, when estimating.
     pub gain_update: Option<GainUpdate>,
-    /// The bound on the asked force from the predictor's expected miss (N), when
-    /// `[control.latency] max_field_turn_at_miss_rad` sets one.
+    /// The bound on the asked force from the predictor's expected miss (N): with
+    /// `[control.latency] max_field_turn_at_miss_rad` above 0 (0.2 by default) and the latency
+    /// compensated, once the predictor has seen two poses.
     pub force_cap_n: Option<f64>,
 }
 
@@ -798,7 +799,7 @@ impl ControlLoop {
     }
 
     /// The largest force worth asking for a pose `pose_age_s` old at actuation, with
-    /// `[control.latency] max_field_turn_at_miss_rad` set. F = (m·∇)B: the gradient that makes
+    /// `[control.latency] max_field_turn_at_miss_rad` above 0. F = (m·∇)B: the gradient that makes
     /// a force F is at least |F|/|m|, so at a capsule δ from where the allocation placed the
     /// field (the predictor's expected miss) it turns the orientation field by up to
     /// |F|·δ/(|m||B|). Past about a radian the magnet follows a field that pushes it the wrong
