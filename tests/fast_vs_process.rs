@@ -44,6 +44,8 @@ struct Delays {
     frame_period_ms: Option<f64>,
     /// `[control.latency] compensate`.
     compensate: bool,
+    /// `[plant.camera] exposure_period_frames`: a camera slower than the loop.
+    exposure_period_frames: u32,
 }
 
 impl Default for Delays {
@@ -53,13 +55,14 @@ impl Default for Delays {
             command_delay_ms: 0.0,
             frame_period_ms: None,
             compensate: true,
+            exposure_period_frames: 1,
         }
     }
 }
 
 impl Delays {
     fn any(&self) -> bool {
-        self.latency_frames > 0 || self.command_delay_ms > 0.0
+        self.latency_frames > 0 || self.command_delay_ms > 0.0 || self.exposure_period_frames > 1
     }
 }
 
@@ -81,12 +84,20 @@ fn paper_cell(cell: &Cell, delays: Delays) -> millinav_tests::PaperCell {
         let mut plant = table_of(&base.sections, "plant");
         let mut control = table_of(&base.sections, "control");
         let mut latency = table_of(&control, "latency");
+        let mut camera = toml::Table::new();
         if delays.latency_frames > 0 {
-            let mut camera = toml::Table::new();
             camera.insert(
                 "latency_frames".into(),
                 i64::from(delays.latency_frames).into(),
             );
+        }
+        if delays.exposure_period_frames > 1 {
+            camera.insert(
+                "exposure_period_frames".into(),
+                i64::from(delays.exposure_period_frames).into(),
+            );
+        }
+        if !camera.is_empty() {
             plant.insert("camera".into(), camera.into());
         }
         if delays.command_delay_ms > 0.0 {
@@ -106,13 +117,14 @@ fn compare_with(cell: Cell, delays: Delays) -> (Metrics, Metrics) {
     // One directory per cell: the tests run in parallel and each removes its own at the end.
     // The latency cells have the same cell name as the plain one: the delays go in the name too.
     let work = std::env::temp_dir().join(format!(
-        "millinav-fvp-{}-{}-lat{}-cmd{}-T{:?}-c{}",
+        "millinav-fvp-{}-{}-lat{}-cmd{}-T{:?}-c{}-x{}",
         std::process::id(),
         cell.name(),
         delays.latency_frames,
         delays.command_delay_ms,
         delays.frame_period_ms,
-        delays.compensate
+        delays.compensate,
+        delays.exposure_period_frames
     ));
     let fast = paper.metrics(&fast_run(&paper.scenario).expect("fast run"));
     let process = paper.metrics(
@@ -188,6 +200,25 @@ fn pid_with_camera_latency_agrees() {
         },
         Delays {
             latency_frames: 2,
+            ..Delays::default()
+        },
+    );
+}
+
+/// Both modes repeat the latest exposure of a camera ten times slower than the loop (a 10 Hz
+/// camera under the 100 Hz loop, `[plant.camera] exposure_period_frames`), stamps included,
+/// which control bridges with its predictor.
+#[test]
+fn pid_under_a_camera_slower_than_the_loop_agrees() {
+    compare_with(
+        Cell {
+            viscosity_cp: 20.0,
+            flow: FlowSetting::Static,
+            controller: "pid".into(),
+            seed: 1,
+        },
+        Delays {
+            exposure_period_frames: 10,
             ..Delays::default()
         },
     );

@@ -1054,8 +1054,14 @@ impl ControlLoop {
                 observer.reset();
             }
         }
+        // A camera slower than the loop delivers its latest exposure again: one observation.
+        let fresh = self.last_good.is_none_or(|(t_prev, _)| t_ns > t_prev);
         self.last_good = Some((t_ns, measured));
-        let gain_update = self.learn_gains(pose, t_ns);
+        let gain_update = if fresh {
+            self.learn_gains(pose, t_ns)
+        } else {
+            None
+        };
         let flow_valid = flow.map(|f| self.violations.check(services::FLOW, f.validity()));
         let (flow_mps, high_disturbance) = match (flow, flow_valid) {
             (Some(f), Some(Ok(true))) if f.stamp.same_frame(&pose.stamp) => (

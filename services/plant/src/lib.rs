@@ -226,6 +226,10 @@ impl RawView {
     }
 }
 
+/// Most loop frames between two camera exposures (`[plant.camera] exposure_period_frames`): a
+/// 1 Hz camera under a 100 Hz loop.
+pub const MAX_EXPOSURE_PERIOD_FRAMES: u32 = 100;
+
 /// Parses and validates the `[plant]` table and loads the model's files. Every failure is a
 /// configuration error naming the scenario, the field or the file.
 pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
@@ -271,6 +275,14 @@ pub fn prepare(scenario: &Scenario) -> Result<PlantSetup, ConfigError> {
              delay are [plant.camera] latency_frames), got {}",
             field("command_delay_ms"),
             config.command_delay_ms
+        )));
+    }
+    let exposure_period = config.camera.exposure_period_frames;
+    if !(1..=MAX_EXPOSURE_PERIOD_FRAMES).contains(&exposure_period) {
+        return Err(ConfigError::new(format!(
+            "{} must be within 1..={MAX_EXPOSURE_PERIOD_FRAMES} loop frames (1: an exposure \
+             every frame), got {exposure_period}",
+            field("camera.exposure_period_frames")
         )));
     }
     let dropout = (config.camera.dropout_at_s, config.camera.dropout_s);
@@ -468,7 +480,8 @@ struct Twin<'s> {
     /// The rig's real camera (lens, pose, resolution) when it has one: the raw frame is the
     /// canonical render seen through it. None: the camera delivers the canonical view itself.
     lens: Option<RawView>,
-    /// States of the last `latency_frames` + 1 frames: frame k shows the state of frame k − L.
+    /// States of the last `latency_frames` + `exposure_period_frames` frames: frame k shows the
+    /// state of the latest exposure at least L frames old ([`CameraConfig::shown_frames_ago`]).
     history: VecDeque<PlantState>,
     teensy: EmulatedTeensy,
     frames: FrameOutbox,
@@ -503,7 +516,7 @@ impl<'s> Twin<'s> {
             config.camera_noise_std,
             config.camera.clone(),
         );
-        let latency = config.camera.latency_frames as usize;
+        let kept_states = config.camera.history_len();
         let contacts = ContactLog::create(&rt.env.run_dir.join(CONTACTS_CSV))?;
         std::fs::create_dir_all(&rt.env.run_dir)?;
         let teensy = EmulatedTeensy::start(
@@ -549,7 +562,7 @@ impl<'s> Twin<'s> {
             geometry,
             camera,
             lens,
-            history: VecDeque::with_capacity(latency + 1),
+            history: VecDeque::with_capacity(kept_states),
             teensy,
             frames,
             truth_out,
@@ -578,7 +591,7 @@ impl<'s> Twin<'s> {
         let fresh_frame = self.last_recorded != Some(self.seq);
         if fresh_frame {
             self.history.push_back(self.state.clone());
-            while self.history.len() > self.config.camera.latency_frames as usize + 1 {
+            while self.history.len() > self.config.camera.history_len() {
                 self.history.pop_front();
             }
         }
@@ -589,10 +602,21 @@ impl<'s> Twin<'s> {
         Ok(())
     }
 
-    /// Sends the camera frame (showing the state `latency_frames` ago) and the current truth.
+    /// Sends the camera frame (showing the latest exposure at least `latency_frames` ago) and
+    /// the current truth.
     fn publish(&self, run_time_ns: u64) -> anyhow::Result<()> {
         let (seq, state) = (self.seq, &self.state);
-        let shown = self.history.front().unwrap_or(state);
+        let ago = self.config.camera.shown_frames_ago(seq) as usize;
+        let shown = self
+            .history
+            .len()
+            .checked_sub(ago + 1)
+            .and_then(|i| self.history.get(i))
+            .unwrap_or(state);
+        // A repeated exposure is the same image: its noise and lighting are the exposure's.
+        let repeats = self.config.camera.frames_since_exposure(seq);
+        let image_seq = seq - repeats;
+        let image_time_s = state.time_s - repeats as f64 * self.scenario.frame_period_s();
         let geometry = &self.geometry;
         // Stamped like a camera whose driver timestamps the exposure: captured when the scene
         // looked like the shown state, grabbed now.
@@ -612,7 +636,7 @@ impl<'s> Twin<'s> {
             ..Default::default()
         }
         .with_mapping(geometry.pixel_mapping());
-        let mut rng = rng_streams::frame_noise_rng(self.scenario.run.seed, seq);
+        let mut rng = rng_streams::frame_noise_rng(self.scenario.run.seed, image_seq);
         let capsule = CapsulePose {
             position_m: shown.position_m,
             heading_rad: shown.heading_rad,
@@ -629,13 +653,20 @@ impl<'s> Twin<'s> {
         match &self.lens {
             None => self
                 .frames
-                .send(header, camera.frame_background(seq), |rgb| {
-                    camera.finish_frame(rgb, &capsule, seq, state.time_s, &mut rng, None)
+                .send(header, camera.frame_background(image_seq), |rgb| {
+                    camera.finish_frame(rgb, &capsule, image_seq, image_time_s, &mut rng, None)
                 })?,
             Some(view) => {
                 let mut canonical = view.scratch.borrow_mut();
-                canonical.copy_from_slice(camera.frame_background(seq));
-                camera.finish_frame(&mut canonical, &capsule, seq, state.time_s, &mut rng, None);
+                canonical.copy_from_slice(camera.frame_background(image_seq));
+                camera.finish_frame(
+                    &mut canonical,
+                    &capsule,
+                    image_seq,
+                    image_time_s,
+                    &mut rng,
+                    None,
+                );
                 let channels = FRAME_CHANNELS as usize;
                 let (w, h) = view.size;
                 let raw_header = FrameHeader {
@@ -970,5 +1001,50 @@ mod tests {
         }
         let (scenario, _) = scenario_with("delay_ok", "command_delay_ms = 6.0", "");
         check_config(&scenario).unwrap();
+
+        for bad in ["0", "101"] {
+            let (scenario, _) = scenario_with(
+                "exposure",
+                &format!("[plant.camera]\nexposure_period_frames = {bad}"),
+                "",
+            );
+            let error = check_config(&scenario).unwrap_err().to_string();
+            assert!(
+                error.contains("[plant] camera.exposure_period_frames") && error.contains(bad),
+                "{bad}: {error}"
+            );
+        }
+        let (scenario, _) = scenario_with(
+            "exposure_ok",
+            "[plant.camera]\nexposure_period_frames = 10",
+            "",
+        );
+        check_config(&scenario).unwrap();
+    }
+
+    /// A 10 Hz camera under a 100 Hz loop with 3 frames of latency: each frame shows the
+    /// latest exposure (frames 0, 10, 20, … of the captured states) at least 3 frames old.
+    #[test]
+    fn frames_show_the_latest_exposure_old_enough() {
+        let camera = CameraConfig {
+            latency_frames: 3,
+            exposure_period_frames: 10,
+            ..CameraConfig::default()
+        };
+        let shown = |seq: u64| seq - camera.shown_frames_ago(seq);
+        assert_eq!((0..=3).map(shown).collect::<Vec<_>>(), [0, 0, 0, 0]);
+        assert_eq!(shown(12), 0);
+        assert_eq!(shown(13), 10);
+        assert_eq!(shown(22), 10);
+        assert_eq!(shown(23), 20);
+        assert!((0..500).all(|seq| camera.shown_frames_ago(seq) < camera.history_len() as u64));
+        // One exposure a frame: the latency alone, as before the exposure period existed.
+        let every_frame = CameraConfig {
+            latency_frames: 3,
+            ..CameraConfig::default()
+        };
+        assert_eq!(every_frame.history_len(), 4);
+        assert!((3..50).all(|seq| every_frame.shown_frames_ago(seq) == 3));
+        assert_eq!(every_frame.shown_frames_ago(1), 1);
     }
 }

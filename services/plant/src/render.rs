@@ -16,6 +16,9 @@
 //!   and renders frame k from the state of frame k − latency; the stamp's capture time is that
 //!   state's time and its grab time the publish time, like a camera whose driver timestamps the
 //!   exposure (V4L2 buffer timestamps), so control can measure the delay;
+//! - exposure period: with `exposure_period_frames` N the camera exposes every N-th frame and
+//!   the frames between repeat the latest exposure (same image, same capture stamp): a camera
+//!   or vision slower than the coil loop, which control bridges with its latency predictor;
 //! - ground truth for datasets: [`Camera::render_sample`] returns the frame, a per-pixel class
 //!   mask ([`MASK_BODY`], [`MASK_CAP`], [`MASK_MAGNET`], 0 elsewhere; pixel centre inside the
 //!   capsule, before blur) and the tip/centroid/tail keypoints.
@@ -102,6 +105,11 @@ pub struct CameraConfig {
     pub lighting_drift_period_s: f64,
     /// Frames between capture and delivery (applied by the plant loop).
     pub latency_frames: u32,
+    /// The camera exposes a new image every this many loop frames (`[run] frame_period_ms`);
+    /// the frames between deliver the latest exposure again, stamps included, as a camera or
+    /// a vision stage slower than the coil loop leaves the loop its latest pose (applied by
+    /// the plant loop; 1: an exposure per frame).
+    pub exposure_period_frames: u32,
     /// The camera vanishes (unplugged, driver hang) at this run time, s: no raw frame is
     /// published for `dropout_s` while the physics goes on (applied by the plant loop).
     pub dropout_at_s: Option<f64>,
@@ -116,6 +124,7 @@ impl Default for CameraConfig {
             lighting_drift_amplitude: 0.04,
             lighting_drift_period_s: 20.0,
             latency_frames: 0,
+            exposure_period_frames: 1,
             dropout_at_s: None,
             dropout_s: 0.0,
         }
@@ -123,6 +132,25 @@ impl Default for CameraConfig {
 }
 
 impl CameraConfig {
+    /// How many frames before frame `seq` the state it shows was: the latency, plus the frames
+    /// since the latest exposure (`exposure_period_frames`; exposures at frames 0, N, 2N, …
+    /// of the captured states), never before frame 0.
+    pub fn shown_frames_ago(&self, seq: u64) -> u64 {
+        (u64::from(self.latency_frames) + self.frames_since_exposure(seq)).min(seq)
+    }
+
+    /// How many frames before frame `seq` its exposure was first delivered: 0 for a fresh
+    /// exposure, up to `exposure_period_frames` − 1 for its repeats.
+    pub fn frames_since_exposure(&self, seq: u64) -> u64 {
+        seq.saturating_sub(u64::from(self.latency_frames))
+            % u64::from(self.exposure_period_frames.max(1))
+    }
+
+    /// Past states the plant loop keeps so that [`Self::shown_frames_ago`] can reach back.
+    pub fn history_len(&self) -> usize {
+        self.latency_frames as usize + self.exposure_period_frames.max(1) as usize
+    }
+
     /// Whether the camera is away at run time `time_s` (`dropout_at_s`, `dropout_s`).
     pub fn in_dropout(&self, time_s: f64) -> bool {
         self.dropout_at_s
@@ -136,6 +164,7 @@ impl CameraConfig {
             lighting_drift_amplitude: 0.0,
             lighting_drift_period_s: 20.0,
             latency_frames: 0,
+            exposure_period_frames: 1,
             dropout_at_s: None,
             dropout_s: 0.0,
         }

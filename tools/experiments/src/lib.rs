@@ -461,10 +461,13 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
     let command_delay_s = plant_config.command_delay_ms * 1e-3;
     let mut trace = Vec::with_capacity(frames as usize + 1);
     let now = std::time::Instant::now();
-    // The camera's latency as the plant applies it: frame k shows the state of frame k − L,
-    // captured at that state's time and grabbed at frame k's.
-    let latency = plant_config.camera.latency_frames as usize;
-    let mut seen: VecDeque<(Vector2<f64>, f64, f64)> = VecDeque::with_capacity(latency + 1);
+    // The camera's latency and exposure period as the plant applies them: frame k shows the
+    // state of the latest exposure at least L frames old, captured at that state's time and
+    // grabbed at frame k's; a repeated exposure is the same measurement.
+    let camera = &plant_config.camera;
+    let mut seen: VecDeque<(Vector2<f64>, f64, f64)> =
+        VecDeque::with_capacity(camera.history_len());
+    let mut measured_exposure: Option<(Vector2<f64>, f64)> = None;
     for seq in 0..=frames {
         trace.push(TraceRow {
             time_s: state.time_s,
@@ -486,16 +489,25 @@ pub fn fast_run(scenario: &Scenario) -> anyhow::Result<Vec<TraceRow>> {
             break;
         }
         seen.push_back((state.position_m, state.heading_rad, state.time_s));
-        while seen.len() > latency + 1 {
+        while seen.len() > camera.history_len() {
             seen.pop_front();
         }
-        let (seen_position, seen_heading, seen_time_s) = seen[0];
-        let measured = seen_position + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng));
+        let ago = camera.shown_frames_ago(seq) as usize;
+        let (seen_position, seen_heading, seen_time_s) = seen[seen.len() - 1 - ago];
+        let (measured, heading) = match measured_exposure {
+            Some(exposure) if camera.frames_since_exposure(seq) > 0 => exposure,
+            _ => {
+                let measured =
+                    seen_position + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng));
+                let heading = seen_heading + heading_noise.sample(&mut heading_rng);
+                *measured_exposure.insert((measured, heading))
+            }
+        };
         let pose = Pose {
             stamp: FrameStamp::new(seq, 0, secs_to_ns(seen_time_s))
                 .grabbed_at(secs_to_ns(state.time_s)),
             position_m: [measured.x, measured.y],
-            heading_rad: seen_heading + heading_noise.sample(&mut heading_rng),
+            heading_rad: heading,
             confidence: 1.0,
             valid: Flag::TRUE,
             source: PoseSource::Unet as u32,

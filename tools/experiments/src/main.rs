@@ -118,6 +118,12 @@ struct MatrixArgs {
     /// for the paper's 10 Hz loop.
     #[arg(long)]
     frame_period_ms: Option<f64>,
+    /// Camera exposure period (ms), a whole multiple of the frame period: a camera (or vision)
+    /// slower than the coil loop, which keeps the frame period and is fed the latest exposure
+    /// again between exposures (`[plant.camera] exposure_period_frames`); e.g. 100 on the base
+    /// scenario's 10 ms frames: a 10 Hz camera under a 100 Hz coil loop.
+    #[arg(long)]
+    camera_period_ms: Option<f64>,
     /// Extra latency from capture to the coils (ms) on top of the frame period, instead of the
     /// base scenario's `[plant.camera] latency_frames`, e.g. 100 at 10 Hz: whole frame periods
     /// are camera latency (control measures it from the frames' stamps), the rest a delay inside
@@ -632,6 +638,24 @@ fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
             "--frame-period-ms must be within 1..=1000, got {period}"
         );
         base.run.frame_period_ms = period;
+    }
+    if let Some(camera_ms) = args.camera_period_ms {
+        let frames = camera_ms / base.run.frame_period_ms;
+        anyhow::ensure!(
+            frames.is_finite()
+                && (frames - frames.round()).abs() < 1e-9
+                && (1.0..=f64::from(millinav_plant::MAX_EXPOSURE_PERIOD_FRAMES))
+                    .contains(&frames.round()),
+            "--camera-period-ms must be a whole multiple (1 to {}) of the frame period ({} ms), \
+             got {camera_ms}",
+            millinav_plant::MAX_EXPOSURE_PERIOD_FRAMES,
+            base.run.frame_period_ms
+        );
+        set_in_table(
+            &mut base.sections,
+            &["plant", "camera", "exposure_period_frames"],
+            toml::Value::Integer(frames.round() as i64),
+        )?;
     }
     if let Some(delay_ms) = args.command_delay_ms {
         anyhow::ensure!(

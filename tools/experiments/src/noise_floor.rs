@@ -190,11 +190,24 @@ pub fn scenario_floor(
     let plant: millinav_plant::PlantConfig = scenario.section("plant")?;
     let model = millinav_plant::build_model(scenario, &plant)?;
     let capsule = model.flow_noise_response();
-    let sampling = Sampling {
-        frame_period_s: scenario.frame_period_s(),
-        latency_frames: plant.camera.latency_frames,
-        command_delay_s: plant.command_delay_ms * 1e-3,
-        pose_noise_m: crate::FAST_POSE_NOISE_M,
+    let exposures = plant.camera.exposure_period_frames.max(1);
+    let sampling = if exposures == 1 {
+        Sampling {
+            frame_period_s: scenario.frame_period_s(),
+            latency_frames: plant.camera.latency_frames,
+            command_delay_s: plant.command_delay_ms * 1e-3,
+            pose_noise_m: crate::FAST_POSE_NOISE_M,
+        }
+    } else {
+        // A camera slower than the loop: the poses come one exposure period apart and their
+        // age at the coils runs over that period from the latency on, whatever the loop rate.
+        Sampling {
+            frame_period_s: scenario.frame_period_s() * f64::from(exposures),
+            latency_frames: 0,
+            command_delay_s: f64::from(plant.camera.latency_frames) * scenario.frame_period_s()
+                + plant.command_delay_ms * 1e-3,
+            pose_noise_m: crate::FAST_POSE_NOISE_M,
+        }
     };
     Ok(ScenarioFloor {
         noise_rms_speed_mps: capsule.noise_rms_speed_mps,

@@ -608,10 +608,18 @@ pub fn table_header(mode: &str, base: &Scenario) -> anyhow::Result<String> {
             yielding.unwrap_or_default()
         )
     });
+    let camera_period = number(&["plant", "camera", "exposure_period_frames"])
+        .filter(|frames| *frames > 1.0)
+        .map_or(String::new(), |frames| {
+            format!(
+                " (the camera exposes every {} ms, the loop fed its latest exposure between)",
+                frames * base.run.frame_period_ms
+            )
+        });
     let rig = base.rig()?;
     Ok(format!(
-        "{mode}, {} ms frame period, {} ms extra camera latency{command_delay} ({}), per-coil gain \
-         error σ {:.0} % unknown to control{floor}{observer}{slew}, rig {} ({})",
+        "{mode}, {} ms frame period{camera_period}, {} ms extra camera latency{command_delay} ({}), \
+         per-coil gain error σ {:.0} % unknown to control{floor}{observer}{slew}, rig {} ({})",
         base.run.frame_period_ms,
         frames as f64 * base.run.frame_period_ms,
         if compensated {

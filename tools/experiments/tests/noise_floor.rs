@@ -76,3 +76,33 @@ fn the_flow_noise_floor_is_zero_in_still_fluid_and_grows_with_the_poses_age() {
         }
     }
 }
+
+/// A camera ten times slower than the 100 Hz loop gives the poses of the 10 Hz loop, one every
+/// 100 ms, aged the same at the coils: the same floor. A camera period that is not a whole
+/// number of frames is refused, naming the flag.
+#[test]
+fn a_camera_slower_than_the_loop_has_the_floor_of_its_own_rate() {
+    let camera = floors(&["--camera-period-ms", "100"]);
+    let loop_10hz = floors(&["--frame-period-ms", "100"]);
+    let loop_100hz = floors(&[]);
+    assert_eq!(camera.len(), 6, "{camera:?}");
+    for (((condition, slow), (_, ten)), (_, hundred)) in
+        camera.iter().zip(&loop_10hz).zip(&loop_100hz)
+    {
+        assert!((slow - ten).abs() <= 1e-3, "{condition}: {slow} vs {ten}");
+        if !condition.ends_with("static") {
+            assert!(slow > &(2.0 * hundred), "{condition}: {slow} vs {hundred}");
+        }
+    }
+    let output = Command::new(env!("CARGO_BIN_EXE_experiments"))
+        .current_dir(fieldmaps::data_root())
+        .args(["--noise-floor", "--camera-period-ms", "15"])
+        .output()
+        .expect("experiments runs");
+    assert!(!output.status.success());
+    let said = text(&output);
+    assert!(
+        said.contains("--camera-period-ms") && said.contains("whole multiple"),
+        "{said}"
+    );
+}
