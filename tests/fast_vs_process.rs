@@ -178,26 +178,26 @@ fn compare_with(cell: Cell, delays: Delays) -> (Metrics, Metrics) {
     (fast, process)
 }
 
-#[test]
-fn pid_in_still_fluid_agrees() {
-    compare(Cell {
+/// PID in still 20 cP fluid, seed 1: the cell the delay and camera cells vary.
+fn still_20cp_pid() -> Cell {
+    Cell {
         viscosity_cp: 20.0,
         flow: FlowSetting::Static,
         controller: "pid".into(),
         seed: 1,
-    });
+    }
+}
+
+#[test]
+fn pid_in_still_fluid_agrees() {
+    compare(still_20cp_pid());
 }
 
 /// Both modes show the robot as it was `latency_frames` frames ago (issue 21, point 6).
 #[test]
 fn pid_with_camera_latency_agrees() {
     compare_with(
-        Cell {
-            viscosity_cp: 20.0,
-            flow: FlowSetting::Static,
-            controller: "pid".into(),
-            seed: 1,
-        },
+        still_20cp_pid(),
         Delays {
             latency_frames: 2,
             ..Delays::default()
@@ -211,12 +211,7 @@ fn pid_with_camera_latency_agrees() {
 #[test]
 fn pid_under_a_camera_slower_than_the_loop_agrees() {
     compare_with(
-        Cell {
-            viscosity_cp: 20.0,
-            flow: FlowSetting::Static,
-            controller: "pid".into(),
-            seed: 1,
-        },
+        still_20cp_pid(),
         Delays {
             exposure_period_frames: 10,
             ..Delays::default()
