@@ -372,13 +372,18 @@ impl PlantModel {
         if steady == Vector2::zeros() {
             return steady;
         }
-        // Peristaltic-like: a rectified sine whose mean is 1 and peak 1 + amplitude.
+        steady * self.pulsation_factor(t)
+    }
+
+    /// The pulsatile waveform the steady map is multiplied by at `t`. Peristaltic-like: a
+    /// rectified sine whose mean is 1 and peak 1 + amplitude; its period is 1 / pulsation_hz.
+    pub fn pulsation_factor(&self, t: f64) -> f64 {
         let phase = (std::f64::consts::PI * self.config.pulsation_hz * t)
             .sin()
             .abs();
         let mean_of_abs_sine = 2.0 / std::f64::consts::PI;
         let a = self.config.pulsation_amplitude;
-        steady * (1.0 + a * (phase - mean_of_abs_sine) / (1.0 - mean_of_abs_sine))
+        1.0 + a * (phase - mean_of_abs_sine) / (1.0 - mean_of_abs_sine)
     }
 
     fn moment(&self, heading: f64) -> Vector3<f64> {

@@ -177,7 +177,9 @@ struct MatrixArgs {
     /// mm) that no controller can beat in the twin's flow noise with these poses (frame period,
     /// camera latency, command delay, fast mode's pose noise): the Kalman predictor's error
     /// when the coils act, for the capsule with its linear drag and for a body that follows the
-    /// flow at once (README, "The flow noise's floor").
+    /// flow at once (README, "The flow noise's floor"); and the error the pump's stroke, known
+    /// exactly, leaves under a force held over each loop frame (README, "The pump's stroke
+    /// under the loop's hold").
     #[arg(long, conflicts_with = "robustness")]
     noise_floor: bool,
     /// Worker threads (local backend, fast mode; process mode runs one cell at a time).
@@ -315,17 +317,23 @@ fn main() -> ExitCode {
 fn print_noise_floors(rows: &[noise_floor::FloorRow], on_paper_rig: bool) {
     println!(
         "| condition | loop | pose age when the coils act (ms) | noise RMS (mm/s) | floor RMSE (mm) \
-         | floor, following the flow (mm) | paper SMC-DOB (mm) |"
+         | floor, following the flow (mm) | pulsation known, held per frame (mm) | paper SMC-DOB (mm) |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     for row in rows {
         let s = &row.sampling;
         let youngest_ms = (s.latency_frames as f64 * s.frame_period_s + s.command_delay_s) * 1e3;
         let paper = report::paper_smc_dob_rmse_mm(row.viscosity_cp, row.flow)
             .filter(|_| on_paper_rig)
             .map_or("–".to_string(), |v| format!("{v:.2}"));
+        // Not computed for a pump slower than the cycle the floor is solved over.
+        let held_stroke = if row.pulsation_hold_floor_m.is_finite() {
+            format!("{:.3}", row.pulsation_hold_floor_m * 1e3)
+        } else {
+            "–".to_string()
+        };
         println!(
-            "| {} cP, {} | {:.0} Hz | {:.0}–{:.0} | {:.1} | {:.3} | {:.3} | {} |",
+            "| {} cP, {} | {:.0} Hz | {:.0}–{:.0} | {:.1} | {:.3} | {:.3} | {} | {} |",
             row.viscosity_cp,
             row.flow.label(),
             1.0 / s.frame_period_s,
@@ -334,6 +342,7 @@ fn print_noise_floors(rows: &[noise_floor::FloorRow], on_paper_rig: bool) {
             row.noise_rms_speed_mps * 1e3,
             row.floor_m * 1e3,
             row.fluid_particle_floor_m * 1e3,
+            held_stroke,
             paper
         );
     }

@@ -40,7 +40,7 @@ fn another_rig_gets_its_own_conditions_and_no_paper_numbers() {
         "vessel8's flow conditions: {rows:?}"
     );
     for row in &rows {
-        assert_eq!(row[7], "–", "{row:?}");
+        assert_eq!(row[8], "–", "{row:?}");
         let floor: f64 = row[5].parse().unwrap();
         let following: f64 = row[6].parse().unwrap();
         assert!(following >= floor, "{row:?}");
@@ -73,6 +73,42 @@ fn the_flow_noise_floor_is_zero_in_still_fluid_and_grows_with_the_poses_age() {
     for ((condition, floor), (_, loud)) in now.iter().zip(&louder) {
         if !condition.ends_with("static") {
             assert!(*loud > 1.2 * floor, "{condition}: {floor} → {loud}");
+        }
+    }
+}
+
+/// The pump's stroke, known exactly, under a force held over each frame: nothing in still
+/// fluid, something at the paper's 10 Hz, next to nothing at 100 Hz, and the same whatever
+/// the camera's latency (the hold is the loop's, not the poses').
+#[test]
+fn the_pulsation_held_per_frame_has_a_floor_of_the_loop_rate_alone() {
+    let column = |args: &[&str]| -> Vec<(String, f64)> {
+        table("scenarios/paper.toml", args)
+            .into_iter()
+            .map(|cells| (cells[1].clone(), cells[7].parse().expect("a floor in mm")))
+            .collect()
+    };
+    let ten = column(&["--frame-period-ms", "100"]);
+    let ten_late = column(&["--frame-period-ms", "100", "--camera-latency-ms", "100"]);
+    let hundred = column(&[]);
+    let still_pump = column(&[
+        "--frame-period-ms",
+        "100",
+        "--set",
+        "plant.physics.pulsation_amplitude=0.0",
+    ]);
+    assert_eq!(ten.len(), 6, "{ten:?}");
+    for (i, (condition, at_10_hz)) in ten.iter().enumerate() {
+        assert_eq!(*at_10_hz, ten_late[i].1, "{condition}");
+        assert_eq!(still_pump[i].1, 0.0, "{condition}");
+        if condition.ends_with("static") {
+            assert_eq!(*at_10_hz, 0.0, "{condition}");
+        } else {
+            assert!(
+                *at_10_hz > 0.0 && hundred[i].1 < at_10_hz / 10.0,
+                "{condition}: {at_10_hz} at 10 Hz, {} at 100 Hz",
+                hundred[i].1
+            );
         }
     }
 }
