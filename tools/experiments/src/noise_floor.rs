@@ -24,7 +24,7 @@
 //! stream speeds. For the linearised capsule the two floors add in quadrature: the noise is
 //! random and the stroke is not.
 
-use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Matrix6, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Matrix2, Matrix2xX, Matrix3, Matrix6, Vector2, Vector3};
 
 /// The linearised capsule in the flow noise, as the twin has it
 /// (`PlantModel::flow_noise_response`).
@@ -275,7 +275,7 @@ pub fn pulsation_hold_floor_m(
     // The state is affine in the unknowns z = (x offset, the force per unit mass of each
     // frame): columns of `sensitivity`, plus the pulsation's own response `driven`.
     let unknowns = frames + 1;
-    let mut sensitivity = DMatrix::<f64>::zeros(2, unknowns);
+    let mut sensitivity = Matrix2xX::<f64>::zeros(unknowns);
     sensitivity[(0, 0)] = 1.0;
     let mut driven = Vector2::zeros();
     let mut normal = DMatrix::<f64>::zeros(unknowns, unknowns);
@@ -292,13 +292,9 @@ pub fn pulsation_hold_floor_m(
             for step in 0..steps_per_frame {
                 let t = cycle_s * cycle as f64 + h * (frame * steps_per_frame + step) as f64;
                 let push = push_rate * stream_deviation_mps(t + h / 2.0);
-                for column in 0..unknowns {
-                    let state = Vector2::new(sensitivity[(0, column)], sensitivity[(1, column)]);
-                    let input = if column == frame + 1 { 1.0 } else { 0.0 };
-                    let next = phi * state + gamma * input;
-                    sensitivity[(0, column)] = next[0];
-                    sensitivity[(1, column)] = next[1];
-                }
+                sensitivity = phi * sensitivity;
+                let mut this_frame = sensitivity.column_mut(frame + 1);
+                this_frame += gamma;
                 driven = phi * driven + gamma * push;
                 if cycle == warm_up_cycles {
                     let row = sensitivity.row(0).transpose();
