@@ -6,12 +6,15 @@
 #
 # LABELS: a directory of LabelMe files (format: tools/unet/LABELS.md) or a split that
 # unet-import already made (train/ and val/). OUT_DIR gets split/ (the imported crops),
-# unet_roi96.onnx / .pt (fine-tuned), unet_roi96_int8.onnx (quantized, calibrated on your
-# crops), before.md / after.md (vision-eval on your val frames) and finetune_log.txt.
-# Needs python3 with PyTorch, onnx and onnxruntime, and the project built (BIN, default
+# unet_roi96.onnx / .npz (fine-tuned model and its weights), unet_roi96_int8.onnx (quantized,
+# calibrated on your crops), before.md / after.md (vision-eval on your val frames) and
+# finetune_log.txt. Needs python3 with JAX, optax, onnx and onnxruntime (the project's venv after
+# scripts/setup.sh and scripts/setup_training.sh: CPU only, no CUDA libraries; with a GPU,
+# `pip install "jax[cuda12]==0.10.2"` there too) and the project built (BIN, default
 # $CARGO_TARGET_DIR/release: unet-import, vision-eval). SKIP_EVAL=1 leaves out the two
 # evaluations (a GPU machine without the project's OpenCV; run them where it is built).
-# INIT: the weights to start from (default tools/unet/model/unet_roi96.pt).
+# INIT: the weights to start from (default tools/unet/model/unet_roi96.npz; a PyTorch .pt
+# state dict of the earlier trainer works too).
 set -euo pipefail
 usage="usage: scripts/finetune_unet.sh LABELS OUT_DIR [--rig RIG] [train.py options]"
 LABELS=${1:?$usage}
@@ -25,12 +28,13 @@ fi
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 BIN=${BIN:-${CARGO_TARGET_DIR:-$ROOT/target}/release}
 PYTHON=${PYTHON:-python3}
-INIT=${INIT:-$ROOT/tools/unet/model/unet_roi96.pt}
+INIT=${INIT:-$ROOT/tools/unet/model/unet_roi96.npz}
 COMMITTED="$ROOT/tools/unet/model/unet_roi96_int8.onnx"
 die() { echo "finetune_unet: $*" >&2; exit 1; }
 [ -e "$LABELS" ] || die "$LABELS: no such file or directory"
 [ -f "$INIT" ] || die "$INIT: no weights to start from"
-"$PYTHON" -c "import torch, onnx, onnxruntime" 2>/dev/null || die "$PYTHON lacks torch, onnx or onnxruntime"
+"$PYTHON" -c "import jax, optax, onnx, onnxruntime" 2>/dev/null ||
+  die "$PYTHON lacks jax, optax, onnx or onnxruntime (scripts/setup_training.sh)"
 mkdir -p "$OUT"
 
 if [ -f "$LABELS/train/labels.csv" ]; then

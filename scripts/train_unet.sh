@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Trains the UNet localizer on domain-randomized twin renders with the camera's shifts applied
 # in training (tools/unet/augment.py), then quantizes it to int8 for the vision service.
-# Needs python3 with PyTorch, onnx and onnxruntime (a GPU makes it minutes; CPU works, slowly)
-# and a built unet-dataset (BIN, default $CARGO_TARGET_DIR/release).
+# Needs python3 with JAX, optax, onnx and onnxruntime (scripts/setup_training.sh: CPU wheels; the
+# CPU works, for hours; on an NVIDIA GPU, minutes, after `pip install "jax[cuda12]==0.10.2"` in
+# the same venv) and a built unet-dataset (BIN, default $CARGO_TARGET_DIR/release).
 #
 #   scripts/train_unet.sh OUT_DIR [train.py options, e.g. --epochs 80]
 #
-# OUT_DIR gets data/ (the crops), unet_roi96.onnx / .pt, unet_roi96_int8.onnx,
+# OUT_DIR gets data/ (the crops), unet_roi96.onnx / .npz (model, weights), unet_roi96_int8.onnx,
 # training_metrics.json and train_log.txt. Evaluate with
 #   vision-eval --model OUT_DIR/unet_roi96_int8.onnx [--robustness]
 # and copy the models to tools/unet/model/ when they hold up. Sizes: TRAIN_PER crops per
@@ -22,7 +23,8 @@ MINUTES=${MINUTES:-8}
 DATA="$OUT/data"
 mkdir -p "$DATA"
 [ -x "$BIN/unet-dataset" ] || { echo "no $BIN/unet-dataset: cargo build --release -p millinav-unet" >&2; exit 1; }
-"$PYTHON" -c "import torch, onnx, onnxruntime" || { echo "$PYTHON lacks torch, onnx or onnxruntime" >&2; exit 1; }
+"$PYTHON" -c "import jax, optax, onnx, onnxruntime" ||
+  { echo "$PYTHON lacks jax, optax, onnx or onnxruntime (scripts/setup_training.sh)" >&2; exit 1; }
 
 echo "== crops (seeds 5000-5302; the committed test set uses 9002, the held-out split 4000)"
 pids=()

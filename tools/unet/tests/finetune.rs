@@ -5,8 +5,9 @@
 //! evaluate again — on this machine's CPU, with a few epochs. The committed model misses the
 //! orange capsule; the fine-tuned int8 model finds it.
 //!
-//! Needs PyTorch and onnx in the project's venv (`scripts/setup_training.sh`, which the test
-//! command runs) and the workspace's binaries (unet-import, vision-eval) built beside this one.
+//! Needs JAX (CPU), optax and onnx in the project's venv (`scripts/setup_training.sh`, which the
+//! test command runs) and the workspace's binaries (unet-import, vision-eval) built beside this
+//! one.
 #![cfg(feature = "labelme")] // unet-import reads the frames with OpenCV
 use std::path::Path;
 use std::process::Command;
@@ -58,13 +59,13 @@ impl EvalRow {
 #[test]
 fn your_labelled_frames_fine_tune_the_committed_model_in_one_command() {
     let python = venv_python();
-    let has_torch = Command::new(&python)
-        .args(["-c", "import torch, onnx, onnxruntime"])
+    let has_training = Command::new(&python)
+        .args(["-c", "import jax, optax, onnx, onnxruntime"])
         .status()
         .is_ok_and(|s| s.success());
     assert!(
-        has_torch,
-        "{} lacks torch, onnx or onnxruntime: run scripts/setup_training.sh",
+        has_training,
+        "{} lacks jax, optax, onnx or onnxruntime: run scripts/setup_training.sh",
         python.display()
     );
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
@@ -111,7 +112,7 @@ fn your_labelled_frames_fine_tune_the_committed_model_in_one_command() {
         String::from_utf8_lossy(&finetune.stderr)
     );
     assert!(finetune.status.success(), "finetune_unet.sh failed:\n{log}");
-    for file in ["unet_roi96.onnx", "unet_roi96.pt", "unet_roi96_int8.onnx"] {
+    for file in ["unet_roi96.onnx", "unet_roi96.npz", "unet_roi96_int8.onnx"] {
         assert!(out.join(file).is_file(), "no {file} in {}", out.display());
     }
 
