@@ -29,14 +29,14 @@ _NORMALS = 3 * 3 + 11 * 11
 
 
 class _Draws:
-    """Random draws for a batch of n crops (C,H,W) from one jax.random key, all taken from a
-    single generator call: every call in the compiled function costs about a second of compile
-    time, and the shifts draw about a hundred times. Each draw takes the next columns of a
-    uniform table or of a normal one (Box-Muller from the same uniform numbers)."""
+    """Random draws for a batch of n crops (C,H,W) from one jax.random key, all from a single
+    generator call: each call compiles into code of its own, and the shifts draw about a hundred
+    times. Each draw takes the next columns of a uniform table or of a normal one (Box-Muller
+    from more of the same call's uniform numbers)."""
 
     def __init__(self, key, n, c, h, w):
-        normals = _NORMALS + c * h * w + (c * h * w) % 2
-        table = jax.random.uniform(key, (n, _UNIFORMS + normals), minval=jnp.finfo(jnp.float32).tiny)
+        pairs = (_NORMALS + c * h * w + 1) // 2
+        table = jax.random.uniform(key, (n, _UNIFORMS + 2 * pairs), minval=jnp.finfo(jnp.float32).tiny)
         u1, u2 = table[:, _UNIFORMS::2], table[:, _UNIFORMS + 1::2]
         radius = jnp.sqrt(-2.0 * jnp.log(u1))
         self.tables = {
