@@ -60,6 +60,8 @@ EVAL_BATCH = 256
 
 def load_labels(directory):
     path = f"{directory}/labels.csv"
+    if not os.path.isfile(path):
+        sys.exit(f"{path}: no such file (want a split of unet-dataset or unet-import)")
     with open(path) as f:
         header = f.readline().strip()
     if header != HEADER:
