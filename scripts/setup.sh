@@ -11,7 +11,7 @@ set -euo pipefail
 VENV="${MILLINAV_VENV:-$HOME/.cache/millinav/venv}"
 # Python packages, pinned; a venv whose installed version of any of them differs is reinstalled.
 PYTHON_PINS=(rerun-sdk==0.36.3 onnxruntime==1.32.0 magpylib==6.3.0 iceoryx2==0.10.0)
-APT_PACKAGES=(libopencv-dev clang libclang-dev)
+APT_PACKAGES=(libopencv-dev clang libclang-dev libzstd-dev pkg-config)
 
 missing=()
 for pkg in "${APT_PACKAGES[@]}"; do
