@@ -1484,6 +1484,7 @@ fn control_row(pose: &Pose, d: &Decision, now_ns: u64) -> ControlRow {
     };
     ControlRow {
         frame_seq: pose.stamp.seq,
+        frame_incarnation: pose.stamp.incarnation,
         time_s: now_ns as f64 * 1e-9,
         pose_used: used,
         measured_x_m: measured[0],

@@ -5,6 +5,7 @@
 pub mod clock;
 pub mod config;
 pub mod contract;
+pub mod iox_domain;
 pub mod ports;
 pub mod recording;
 pub mod runlog;
@@ -120,15 +121,11 @@ impl RunEnv {
     pub fn from_env() -> Result<Self, KitError> {
         let iox_prefix: Option<String> = parse_env(env_vars::IOX_PREFIX)?;
         if let Some(prefix) = &iox_prefix {
-            if prefix.is_empty()
-                || !prefix
-                    .chars()
-                    .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-            {
+            if let Err(reason) = iox_domain::validate_prefix(prefix) {
                 return Err(KitError::BadEnv {
                     name: env_vars::IOX_PREFIX,
                     value: prefix.clone(),
-                    reason: "use only ASCII letters, digits, '_' and '-'".into(),
+                    reason,
                 });
             }
         }

@@ -247,10 +247,14 @@ mod frame_or_minus_one {
 }
 
 /// The plant's ground truth, one row per published frame (`truth.csv`; for metrics only, never
-/// read by a controller). A restarted or republishing plant repeats a frame's row.
+/// read by a controller). A republishing plant repeats a frame's row; a restarted plant counts
+/// its frames from 0 again under a new `frame_incarnation`, so a frame is (incarnation, seq).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TruthRow {
     pub frame_seq: u64,
+    /// Incarnation of the frame's source (logs written before this column existed: 0).
+    #[serde(default)]
+    pub frame_incarnation: u64,
     #[serde(serialize_with = "fixed6")]
     pub sim_time_s: f64,
     #[serde(serialize_with = "fixed9")]
@@ -303,6 +307,7 @@ impl RunLogRow for TruthRow {
     const FILE_NAME: &'static str = "truth.csv";
     const COLUMNS: &'static [&'static str] = &[
         "frame_seq",
+        "frame_incarnation",
         "sim_time_s",
         "x_m",
         "y_m",
@@ -317,7 +322,8 @@ impl RunLogRow for TruthRow {
         "sum_sq_current_a2",
         "coil_currents_a",
     ];
-    const OPTIONAL_COLUMNS: &'static [&'static str] = &["sum_sq_current_a2", "coil_currents_a"];
+    const OPTIONAL_COLUMNS: &'static [&'static str] =
+        &["frame_incarnation", "sum_sq_current_a2", "coil_currents_a"];
 }
 
 /// A wall contact starting or ending (`contacts.csv`), with the running onset count.
@@ -410,6 +416,9 @@ impl RunLogRow for SupervisorEventRow {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ControlRow {
     pub frame_seq: u64,
+    /// Incarnation of the frame's source (logs written before this column existed: 0).
+    #[serde(default)]
+    pub frame_incarnation: u64,
     /// Time on control's clock at which the command acts (the reference's time), s.
     #[serde(serialize_with = "fixed6")]
     pub time_s: f64,
@@ -442,6 +451,7 @@ impl RunLogRow for ControlRow {
     const FILE_NAME: &'static str = "control.csv";
     const COLUMNS: &'static [&'static str] = &[
         "frame_seq",
+        "frame_incarnation",
         "time_s",
         "pose_used",
         "measured_x_m",
@@ -453,6 +463,7 @@ impl RunLogRow for ControlRow {
         "max_abs_current_a",
         "sum_sq_current_a2",
     ];
+    const OPTIONAL_COLUMNS: &'static [&'static str] = &["frame_incarnation"];
 }
 
 #[cfg(test)]
@@ -466,6 +477,7 @@ mod tests {
     fn truth(frame_seq: u64) -> TruthRow {
         TruthRow {
             frame_seq,
+            frame_incarnation: 1,
             sim_time_s: 0.25,
             x_m: 1.5e-3,
             y_m: -2.25e-3,
@@ -571,7 +583,7 @@ mod tests {
         let text = std::fs::read_to_string(&path).expect("read");
         assert_eq!(
             text.lines().nth(1),
-            Some("3,0.250000,0.001500000,-0.002250000,0.000100000,-0.000300000,0.500000,0.100000000,-0.050000000,1,4.500000,2,20.250000,4.500000 -0.250000 0.000000")
+            Some("3,1,0.250000,0.001500000,-0.002250000,0.000100000,-0.000300000,0.500000,0.100000000,-0.050000000,1,4.500000,2,20.250000,4.500000 -0.250000 0.000000")
         );
         let teensy_dir = temp_dir("format-teensy");
         let teensy_path = teensy_dir.join("teensy_events.csv");
@@ -634,6 +646,7 @@ mod tests {
     fn an_optional_column_may_be_missing_in_older_files() {
         let mut header = TruthRow::COLUMNS.to_vec();
         header.truncate(header.len() - 2);
+        header.retain(|c| *c != "frame_incarnation");
         let text = format!(
             "{}\n0,0.0,0.001,0.002,0,0,0,0,0,0,3.0,0\n",
             header.join(",")
@@ -642,6 +655,7 @@ mod tests {
         assert_eq!(rows.len(), 1);
         assert_eq!(rows[0].sum_sq_current_a2, None);
         assert_eq!(rows[0].currents(), None);
+        assert_eq!(rows[0].frame_incarnation, 0);
         assert!(!rows[0].wall_contact);
     }
 

@@ -145,9 +145,12 @@ impl RunSummary {
         let contacts: Option<Vec<ContactRow>> = rows_if_present(run_dir)?;
         let reference_at = |row: &ControlRow| (row.reference_x_m, row.reference_y_m);
         // The last decision for each frame (a frame shown twice, or a restarted control, may
-        // be answered more than once), in frame order.
-        let by_frame: BTreeMap<u64, &ControlRow> =
-            control.iter().map(|r| (r.frame_seq, r)).collect();
+        // be answered more than once), in frame order. A frame is (incarnation, seq): a
+        // restarted plant counts its frames from 0 again.
+        let by_frame: BTreeMap<(u64, u64), &ControlRow> = control
+            .iter()
+            .map(|r| ((r.frame_incarnation, r.frame_seq), r))
+            .collect();
         let seen: Vec<ErrorSample> = by_frame
             .values()
             .filter(|r| r.pose_used && r.measured_x_m.is_finite() && r.measured_y_m.is_finite())
@@ -161,15 +164,16 @@ impl RunSummary {
             })
             .collect();
         let true_errors = truth.as_ref().map(|rows| {
-            let mut last_seq = None;
+            let mut last_frame = None;
             rows.iter()
                 .filter(|t| {
-                    let fresh = last_seq != Some(t.frame_seq);
-                    last_seq = Some(t.frame_seq);
+                    let frame = Some((t.frame_incarnation, t.frame_seq));
+                    let fresh = last_frame != frame;
+                    last_frame = frame;
                     fresh
                 })
                 .filter_map(|t| {
-                    let c = by_frame.get(&t.frame_seq)?;
+                    let c = by_frame.get(&(t.frame_incarnation, t.frame_seq))?;
                     let (rx, ry) = reference_at(c);
                     Some(ErrorSample {
                         time_s: c.time_s,
@@ -318,5 +322,76 @@ mod tests {
         let short = [sample(0.0, 1.0, false), sample(1.0, 5.5, true)];
         assert!(!tracking(&short).completed);
         assert!(!tracking(&[]).completed);
+    }
+
+    /// A plant restarted mid-run counts its frames from 0 again: the summary must pair each
+    /// truth row with the decision for the same (incarnation, seq), never with the other
+    /// incarnation's frame of the same seq.
+    #[test]
+    fn a_restart_that_repeats_frame_seqs_does_not_mix_the_incarnations() {
+        use crate::runlog::{RunLogRow, RunLogWriter, TruthRow};
+        let dir = crate::scratch::ScratchDir::new("summary-restart").expect("scratch");
+        let mut truth = RunLogWriter::<TruthRow>::in_run_dir(dir.path()).expect("truth");
+        let mut control = RunLogWriter::<ControlRow>::in_run_dir(dir.path()).expect("control");
+        // Incarnation 0 tracks a reference at x = 0 with 1 mm error, incarnation 1 one at
+        // x = 10 mm with 3 mm error; both count seq 0..10.
+        for (incarnation, reference_m, error_m) in [(0u64, 0.0, 1e-3), (1, 10e-3, 3e-3)] {
+            for seq in 0..10u64 {
+                let time_s = incarnation as f64 * 10.0 + seq as f64 * 0.01;
+                truth
+                    .append(&TruthRow {
+                        frame_seq: seq,
+                        frame_incarnation: incarnation,
+                        sim_time_s: time_s,
+                        x_m: reference_m + error_m,
+                        y_m: 0.0,
+                        vx_mps: 0.0,
+                        vy_mps: 0.0,
+                        heading_rad: 0.0,
+                        flow_x_mps: 0.0,
+                        flow_y_mps: 0.0,
+                        wall_contact: false,
+                        max_abs_current_a: 0.0,
+                        lockstep_misses: 0,
+                        sum_sq_current_a2: None,
+                        coil_currents_a: None,
+                    })
+                    .expect("truth row");
+                control
+                    .append(&ControlRow {
+                        frame_seq: seq,
+                        frame_incarnation: incarnation,
+                        time_s,
+                        pose_used: true,
+                        measured_x_m: reference_m + error_m,
+                        measured_y_m: 0.0,
+                        reference_x_m: reference_m,
+                        reference_y_m: 0.0,
+                        finished: false,
+                        mode: 0,
+                        max_abs_current_a: 0.0,
+                        sum_sq_current_a2: 0.0,
+                    })
+                    .expect("control row");
+            }
+        }
+        truth.flush().expect("flush");
+        control.flush().expect("flush");
+        assert!(dir.path().join(TruthRow::FILE_NAME).is_file());
+        let facts = RunFacts {
+            ending: "run complete".into(),
+            duration_s: 20.0,
+            deadline_misses: BTreeMap::new(),
+            restarts: BTreeMap::new(),
+            coil_resistance_ohm: None,
+            recording: None,
+        };
+        let summary = RunSummary::compute(dir.path(), &facts).expect("summary");
+        assert_eq!(summary.frames, 20, "both incarnations' frames count");
+        let expected_mm = ((10.0 * 1.0 + 10.0 * 9.0) / 20.0f64).sqrt();
+        for (name, tracked) in [("truth", &summary.truth), ("seen", &summary.as_control_saw)] {
+            let rmse = tracked.as_ref().expect("tracking").rmse_mm;
+            assert!((rmse - expected_mm).abs() < 1e-6, "{name}: {rmse} mm");
+        }
     }
 }

@@ -542,7 +542,7 @@ impl<'s> Twin<'s> {
         // Raw frames, as a camera delivers them; the camera service rectifies them.
         let frames = FrameOutbox::on(&rt.node, services::RAW_FRAME, frame_bytes)?;
         let truth_out = Outbox::<PlantTruth>::new(&rt.node, services::PLANT_TRUTH)?;
-        let truth_csv = TruthCsv::create(&rt.env.run_dir.join(TRUTH_CSV))?;
+        let truth_csv = TruthCsv::create(&rt.env.run_dir.join(TRUTH_CSV), rt.env.incarnation)?;
         let _ = rt.rec.log_static(
             "world/canal",
             &millinav_kit::rerun::Points2D::new(
@@ -837,13 +837,15 @@ pub const TRUTH_CSV: &str = <TruthRow as RunLogRow>::FILE_NAME;
 /// Ground truth of every frame, for metrics after the run (never read by a controller).
 pub struct TruthCsv {
     out: RunLogWriter<TruthRow>,
+    /// The plant's incarnation: its frames' seqs start from 0 again after a restart.
+    incarnation: u64,
 }
 
 impl TruthCsv {
-    pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
+    pub fn create(path: &std::path::Path, incarnation: u64) -> anyhow::Result<Self> {
         // Append: a restarted plant continues the same trace.
         let out = RunLogWriter::open_append(path)?;
-        Ok(Self { out })
+        Ok(Self { out, incarnation })
     }
 
     pub fn append(&mut self, t: &PlantTruth) -> anyhow::Result<()> {
@@ -854,6 +856,7 @@ impl TruthCsv {
         let sum_sq_current: f64 = t.applied_currents_a.iter().map(|c| c * c).sum();
         self.out.append(&TruthRow {
             frame_seq: t.frame_seq,
+            frame_incarnation: self.incarnation,
             sim_time_s: t.sim_time_ns as f64 * 1e-9,
             x_m: t.position_m[0],
             y_m: t.position_m[1],

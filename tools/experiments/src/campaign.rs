@@ -888,6 +888,7 @@ impl Campaign {
         for (seq, row) in trace.iter().enumerate() {
             writer.append(&TruthRow {
                 frame_seq: seq as u64,
+                frame_incarnation: 0,
                 sim_time_s: row.time_s,
                 x_m: row.position_m.x,
                 y_m: row.position_m.y,

@@ -555,7 +555,7 @@ pub struct RunIsolation<'a> {
 
 /// The iceoryx2 file prefix of run `index` of process `pid` under `tag`: `<tag>_<pid>_<index>_`.
 fn iox_prefix(tag: &str, pid: u32, index: u64) -> String {
-    format!("{tag}_{pid}_{index}_")
+    format!("{tag}-{pid}-{index}_")
 }
 
 /// Removes the shared-memory files and iceoryx2 roots that runs tagged `tag` left behind when
