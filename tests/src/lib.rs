@@ -19,6 +19,13 @@ pub fn bin_dir() -> PathBuf {
     deps.parent().expect("profile dir").to_owned()
 }
 
+/// `name` as part of an iceoryx2 prefix: letters, digits and '-' (kit::iox_domain).
+pub fn prefix_safe(name: &str) -> String {
+    name.chars()
+        .map(|c| if c.is_ascii_alphanumeric() { c } else { '-' })
+        .collect()
+}
+
 /// A run of the whole set under the supervisor.
 pub struct RunSet {
     pub name: String,
@@ -56,7 +63,7 @@ impl RunSet {
         let (iox_prefix, iox_root) = match namespace {
             Some((prefix, root)) => (prefix.to_owned(), root.to_owned()),
             None => (
-                format!("mt{}{}_", std::process::id(), name.replace(['-', ' '], "")),
+                format!("mt{}-{}_", std::process::id(), prefix_safe(name)),
                 base.join("iceoryx2"),
             ),
         };

@@ -38,6 +38,10 @@ pub struct ProcessSpec {
     /// Scheduling priority, CPU affinity and memory locking (`[process.realtime]`).
     #[serde(default)]
     pub realtime: Realtime,
+    /// Longest this process may take from its start to its first heartbeat (loading maps and
+    /// models on a cold, loaded machine); default `[restart] startup_budget_ms`.
+    #[serde(default)]
+    pub startup_budget_ms: Option<u64>,
 }
 
 fn yes() -> bool {
@@ -45,6 +49,11 @@ fn yes() -> bool {
 }
 
 impl ProcessSpec {
+    /// Its start-up budget: its own, else the launch file's.
+    pub fn startup_budget(&self, policy: &RestartPolicy) -> std::time::Duration {
+        std::time::Duration::from_millis(self.startup_budget_ms.unwrap_or(policy.startup_budget_ms))
+    }
+
     /// The executable: `binary` (relative to `bin_dir` unless absolute), else
     /// `<bin_dir>/millinav-<name>`.
     pub fn executable(&self, bin_dir: &Path) -> PathBuf {
@@ -57,15 +66,21 @@ impl ProcessSpec {
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct RestartPolicy {
     /// First restart delay; doubles on each consecutive failure.
     pub initial_backoff_ms: u64,
     pub max_backoff_ms: u64,
     /// A process alive this long resets its backoff.
     pub stable_after_ms: u64,
-    /// Heartbeat misses are ignored this long after a (re)start.
-    pub startup_grace_ms: u64,
+    /// Longest a process may take from its start to its first heartbeat. Until that heartbeat
+    /// the process is starting, not hung: it is never killed for silence, and a start that
+    /// outlasts the budget stops the set safe with the reason.
+    pub startup_budget_ms: u64,
+    /// A restart storm: this many failures of one process within `storm_window_ms` stop the
+    /// set safe (restarting it again will not help) and say why.
+    pub storm_restarts: u32,
+    pub storm_window_ms: u64,
 }
 
 impl Default for RestartPolicy {
@@ -74,7 +89,9 @@ impl Default for RestartPolicy {
             initial_backoff_ms: 100,
             max_backoff_ms: 5000,
             stable_after_ms: 5000,
-            startup_grace_ms: 3000,
+            startup_budget_ms: 120_000,
+            storm_restarts: 5,
+            storm_window_ms: 60_000,
         }
     }
 }
@@ -98,6 +115,7 @@ impl Default for LaunchFile {
             args: Vec::new(),
             restart: true,
             realtime: Realtime::default(),
+            startup_budget_ms: None,
         };
         Self {
             processes: ["plant", "camera", "coilbus", "flow", "vision", "control"]
@@ -151,6 +169,24 @@ impl LaunchFile {
             return Err(invalid(
                 "restart: need 0 < initial_backoff_ms <= max_backoff_ms".into(),
             ));
+        }
+        if launch.restart.storm_restarts == 0 || launch.restart.storm_window_ms == 0 {
+            return Err(invalid(
+                "restart: storm_restarts and storm_window_ms must be above 0".into(),
+            ));
+        }
+        let budgets = std::iter::once(("[restart]", Some(launch.restart.startup_budget_ms))).chain(
+            launch
+                .processes
+                .iter()
+                .map(|p| (p.name.as_str(), p.startup_budget_ms)),
+        );
+        for (owner, budget) in budgets {
+            if budget == Some(0) {
+                return Err(invalid(format!(
+                    "{owner}: startup_budget_ms must be above 0"
+                )));
+            }
         }
         Ok(launch)
     }
@@ -271,7 +307,7 @@ mod tests {
         assert!(err.contains("restrat"), "{err}");
         let err = parse_err(
             "[[process]]\nname = \"plant\"\n[restart]\ninitial_backof_ms = 100\n\
-             max_backoff_ms = 200\nstable_after_ms = 1\nstartup_grace_ms = 1\n",
+             max_backoff_ms = 200\nstable_after_ms = 1\nstartup_budget_ms = 1\n",
         );
         assert!(err.contains("initial_backof_ms"), "{err}");
     }
@@ -288,16 +324,34 @@ mod tests {
         let policy = |initial: u64, max: u64| {
             format!(
                 "[[process]]\nname = \"plant\"\n[restart]\ninitial_backoff_ms = {initial}\n\
-                 max_backoff_ms = {max}\nstable_after_ms = 5000\nstartup_grace_ms = 3000\n"
+                 max_backoff_ms = {max}\nstable_after_ms = 5000\nstartup_budget_ms = 3000\n"
             )
         };
         assert!(parse_err(&policy(0, 100)).contains("0 < initial_backoff_ms"));
         assert!(parse_err(&policy(200, 100)).contains("initial_backoff_ms <= max_backoff_ms"));
         let ok = LaunchFile::parse(&policy(100, 100), Path::new("ok.toml")).expect("valid");
         assert_eq!(ok.restart.max_backoff_ms, 100);
-        // A [restart] table is all or nothing: a forgotten field is named.
-        let err = parse_err("[[process]]\nname = \"plant\"\n[restart]\ninitial_backoff_ms = 100\n");
-        assert!(err.contains("max_backoff_ms"), "{err}");
+        // A key left out of [restart] keeps its default.
+        let partial = "[[process]]\nname = \"plant\"\n[restart]\ninitial_backoff_ms = 100\n";
+        let partial = LaunchFile::parse(partial, Path::new("ok.toml")).expect("valid");
+        assert_eq!(partial.restart.initial_backoff_ms, 100);
+        assert_eq!(
+            partial.restart.startup_budget_ms,
+            RestartPolicy::default().startup_budget_ms
+        );
+        // A budget or a storm of zero would stop every set at once: refused, named.
+        let err = parse_err("[[process]]\nname = \"plant\"\n[restart]\nstartup_budget_ms = 0\n");
+        assert!(err.contains("[restart]: startup_budget_ms"), "{err}");
+        let err = parse_err("[[process]]\nname = \"plant\"\nstartup_budget_ms = 0\n");
+        assert!(err.contains("plant: startup_budget_ms"), "{err}");
+        let err = parse_err("[[process]]\nname = \"plant\"\n[restart]\nstorm_restarts = 0\n");
+        assert!(err.contains("storm_restarts"), "{err}");
+        let own = "[[process]]\nname = \"vision\"\nstartup_budget_ms = 900000\n";
+        let own = LaunchFile::parse(own, Path::new("ok.toml")).expect("valid");
+        assert_eq!(
+            own.processes[0].startup_budget(&own.restart),
+            std::time::Duration::from_secs(900)
+        );
         // The per-process restart switch is a boolean, not a policy name.
         let err = parse_err("[[process]]\nname = \"plant\"\nrestart = \"always\"\n");
         assert!(err.contains("restart"), "{err}");
@@ -366,6 +420,7 @@ mod tests {
             args: Vec::new(),
             restart: true,
             realtime: Realtime::default(),
+            startup_budget_ms: None,
         };
         assert_eq!(absolute.executable(&dir), PathBuf::from("/usr/bin/env"));
         std::fs::remove_file(dir.join("sub/my-vision")).expect("remove");

@@ -4,6 +4,7 @@
 //! `<run_dir>/supervisor_events.csv` so runs and tests can be audited afterwards.
 
 pub mod ctl;
+pub mod front_door;
 pub mod launch;
 pub mod preflight;
 pub mod realtime;
@@ -18,6 +19,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use millinav_kit::iceoryx2::port::listener::Listener;
 use millinav_kit::iceoryx2::prelude::*;
+use millinav_kit::iox_domain::Domain;
 use millinav_kit::ports::{heartbeat_listener, Inbox, Outbox};
 use millinav_kit::runlog::{RunLogWriter, SupervisorEventRow};
 use millinav_kit::scenario::Scenario;
@@ -32,7 +34,9 @@ use shm_schemas::{
 
 use crate::launch::{LaunchFile, ProcessSpec};
 use crate::preflight::{CheckFailure, CheckTarget};
-use crate::restart::{classify_exit, silent_too_long, Backoff, ExitKind};
+use crate::restart::{
+    classify_exit, silent_too_long, startup_progress, Backoff, ExitKind, Startup, StormWatch,
+};
 
 /// Port of the Rerun viewer the supervisor spawns (Rerun's default gRPC port).
 pub const VIEWER_PORT: u16 = 9876;
@@ -61,6 +65,36 @@ pub enum FailFast {
     ChildConfigError {
         service: String,
         status: String,
+        log: PathBuf,
+        output: String,
+    },
+}
+
+/// Why a set that had started was stopped safe before its end: restarting would not help.
+/// `millinav run` exits 1 for them, after the coils are at zero.
+#[derive(Debug, thiserror::Error)]
+pub enum StoppedSafe {
+    #[error(
+        "{service} did not finish starting (no heartbeat) within its start-up budget of \
+         {budget_s:.0} s; the set was stopped safe. A cold or heavily loaded machine can be this \
+         slow: raise `startup_budget_ms` in the launch file if it was only slow. The end of {}:\n{output}",
+        .log.display()
+    )]
+    StartupOverBudget {
+        service: String,
+        budget_s: f64,
+        log: PathBuf,
+        output: String,
+    },
+    #[error(
+        "{service} failed {failures} times within {window_s:.0} s (a restart storm); the set was \
+         stopped safe. The end of {}:\n{output}",
+        .log.display()
+    )]
+    RestartStorm {
+        service: String,
+        failures: usize,
+        window_s: f64,
         log: PathBuf,
         output: String,
     },
@@ -145,6 +179,12 @@ struct ManagedProcess {
     /// When the process died and is waiting for its backoff to pass.
     restart_at: Option<Instant>,
     backoff: Backoff,
+    /// Its current incarnation has beaten once: it has started, and silence now means hung.
+    ready: bool,
+    /// When a slow start was last noted.
+    slow_noted_at: Option<Instant>,
+    /// Its recent failures, to stop a restart storm.
+    storm: StormWatch,
     last_beat: Instant,
     /// Its stdout + stderr, appended across incarnations.
     log: PathBuf,
@@ -168,6 +208,9 @@ impl ManagedProcess {
             started_at: now,
             restart_at: None,
             backoff: Backoff::new(policy),
+            ready: false,
+            slow_noted_at: None,
+            storm: StormWatch::default(),
             last_beat: now,
             log: log_dir.join(format!("{}.log", spec.name)),
             log_start: 0,
@@ -198,6 +241,8 @@ enum Ending {
     WallTimeLimit,
     /// A child exited with `EXIT_CONFIG`: stop the set and say why.
     ConfigError(FailFast),
+    /// A child could not start in its budget or keeps failing: stop the set and say why.
+    StoppedSafe(StoppedSafe),
     /// coilbus holds the coils at zero on the board's account (e-stop, thermal trip, telemetry
     /// that disagrees, another protocol version): the run cannot go on.
     BoardFault(&'static str),
@@ -211,6 +256,8 @@ pub struct Supervisor {
     base_env: Vec<(String, String)>,
     /// Latest deadline-miss count of each (service, incarnation), for the run summary.
     deadline_misses: BTreeMap<(u32, u64), u64>,
+    /// The set's iceoryx2 files, swept of half-made services before each restart.
+    domain: Domain,
 }
 
 impl Supervisor {
@@ -281,6 +328,8 @@ impl Supervisor {
         process.started_at = now;
         process.last_beat = now;
         process.restart_at = None;
+        process.ready = false;
+        process.slow_noted_at = None;
         self.events
             .record(id, "spawn", &format!("pid={pid} incarnation={incarnation}"));
         for outcome in self.processes[index].spec.realtime.apply(pid) {
@@ -365,28 +414,105 @@ impl Supervisor {
             if !process.spec.restart {
                 continue;
             }
-            process.restart_at = Some(Instant::now() + process.backoff.after_exit(lived, &policy));
+            let now = Instant::now();
+            if let Some(failures) = process.storm.failed(now, &policy) {
+                let error = StoppedSafe::RestartStorm {
+                    service: process.spec.name.clone(),
+                    failures,
+                    window_s: policy.storm_window_ms as f64 / 1000.0,
+                    log: process.log.clone(),
+                    output: process.output_tail(),
+                };
+                self.events
+                    .record(id, "restart_storm", &format!("failures={failures}"));
+                ending.get_or_insert(Ending::StoppedSafe(error));
+                continue;
+            }
+            process.restart_at = Some(now + process.backoff.after_exit(lived, &policy));
             // The dead process's ports stay registered until someone cleans them up.
             self.cleanup_dead_nodes(node, id);
         }
         Ok(ending)
     }
 
-    /// Kills the processes that stopped beating; reaping restarts them.
-    fn kill_silent(&mut self, now: Instant) {
-        let grace = Duration::from_millis(self.options.launch.restart.startup_grace_ms);
+    /// Watches the live children: one that has started and stopped beating is hung (killed,
+    /// so that reaping restarts it); one still starting is left alone, its slowness noted,
+    /// until its start-up budget has passed, which stops the set.
+    fn watch_children(&mut self, now: Instant) -> Option<Ending> {
+        let policy = self.options.launch.restart.clone();
         for index in 0..self.processes.len() {
             let p = &self.processes[index];
             if p.child.is_none() {
                 continue;
             }
-            if let Some(silent) =
-                silent_too_long(now, p.started_at, p.last_beat, grace, deadlines::HEARTBEAT)
-            {
-                self.kill_hung(index, silent);
-                self.processes[index].last_beat = now;
+            if p.ready {
+                if let Some(silent) = silent_too_long(now, p.last_beat, deadlines::HEARTBEAT) {
+                    self.kill_hung(index, silent);
+                    self.processes[index].last_beat = now;
+                }
+                continue;
+            }
+            let budget = p.spec.startup_budget(&policy);
+            match startup_progress(now, p.started_at, budget, p.slow_noted_at) {
+                Startup::Starting => {}
+                Startup::Slow(waited) => {
+                    let p = &mut self.processes[index];
+                    p.slow_noted_at = Some(now);
+                    let (id, name) = (p.id, p.spec.name.clone());
+                    tracing::warn!(
+                        service = %name,
+                        "still starting after {:.0} s (start-up budget {:.0} s)",
+                        waited.as_secs_f64(),
+                        budget.as_secs_f64()
+                    );
+                    self.events.record(
+                        id,
+                        "slow_start",
+                        &format!(
+                            "waited_ms={} budget_ms={}",
+                            waited.as_millis(),
+                            budget.as_millis()
+                        ),
+                    );
+                }
+                Startup::OverBudget(waited) => {
+                    let id = p.id;
+                    self.events.record(
+                        id,
+                        "startup_over_budget",
+                        &format!("waited_ms={}", waited.as_millis()),
+                    );
+                    return Some(Ending::StoppedSafe(StoppedSafe::StartupOverBudget {
+                        service: p.spec.name.clone(),
+                        budget_s: budget.as_secs_f64(),
+                        log: p.log.clone(),
+                        output: p.output_tail(),
+                    }));
+                }
             }
         }
+        None
+    }
+
+    /// A heartbeat of `service`'s current incarnation: the first one says it has started.
+    fn note_started(&mut self, service: ServiceId, incarnation: u64, now: Instant) {
+        let Some(process) = self
+            .processes
+            .iter_mut()
+            .find(|p| p.id == service && p.incarnation == incarnation && p.child.is_some())
+        else {
+            return;
+        };
+        if process.ready {
+            return;
+        }
+        process.ready = true;
+        process.last_beat = now;
+        let startup_ms = now
+            .saturating_duration_since(process.started_at)
+            .as_millis();
+        let detail = format!("incarnation={incarnation} startup_ms={startup_ms}");
+        self.events.record(service, "ready", &detail);
     }
 
     fn spawn_all(&mut self) -> anyhow::Result<()> {
@@ -398,8 +524,13 @@ impl Supervisor {
         for index in 0..self.processes.len() {
             let process = &mut self.processes[index];
             if process.child.is_none() && process.restart_at.is_some_and(|t| now >= t) {
-                process.incarnation += 1;
                 let id = process.id;
+                if let Some(later) = self.sweep_half_made(id) {
+                    self.processes[index].restart_at = Some(later);
+                    continue;
+                }
+                let process = &mut self.processes[index];
+                process.incarnation += 1;
                 let incarnation = process.incarnation;
                 self.spawn(index)?;
                 self.events
@@ -407,6 +538,29 @@ impl Supervisor {
             }
         }
         Ok(())
+    }
+
+    /// Removes the services that a killed child left half-made, so that its next start (or any
+    /// other child's) does not hang on them. Returns when to try again if one is still too
+    /// young to tell from a live creator's.
+    fn sweep_half_made(&mut self, id: ServiceId) -> Option<Instant> {
+        match self.domain.sweep_half_made(std::time::SystemTime::now()) {
+            Ok(sweep) => {
+                for path in &sweep.removed {
+                    self.events.record(
+                        id,
+                        "removed_half_made_service",
+                        &path.display().to_string(),
+                    );
+                }
+                let wait = sweep.retry_at?.duration_since(std::time::SystemTime::now());
+                wait.ok().map(|wait| Instant::now() + wait)
+            }
+            Err(e) => {
+                self.events.record(id, "sweep_failed", &e.to_string());
+                None
+            }
+        }
     }
 
     /// Stops every child: control first, coilbus (which zeroes the coils), then the rest.
@@ -550,6 +704,7 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
     let plan = plan(&options)?;
     check_configuration(&options.launch, &plan)?;
     let viewer = start_viewer(options.viewer)?;
+    let domain = clean_domain(&options)?;
     let base_env = run_environment(&options, &plan, viewer.as_ref().map(|(_, url)| url));
     // The supervisor joins the run like any service.
     for (k, v) in &base_env {
@@ -567,8 +722,8 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
         rig = %plan.scenario.rig_path().display(),
         "supervisor starting the set"
     );
-    let mut supervisor = Supervisor::new(&options, &plan, base_env, &rt)?;
-    // A stale set from an earlier crashed run with the same prefix must not confuse this one.
+    let mut supervisor = Supervisor::new(&options, &plan, base_env, &rt, domain)?;
+    // Dead nodes of an earlier set (left when clients of another kind kept its files).
     supervisor.cleanup_dead_nodes(&rt.node, ServiceId::Supervisor);
     let heartbeats = Heartbeats::connect(&rt, &supervisor.processes)?;
     let ending = supervisor
@@ -592,6 +747,57 @@ pub fn run(options: SupervisorOptions) -> anyhow::Result<()> {
         ending,
         summary,
     )
+}
+
+/// The set's iceoryx2 domain (prefix and root), cleaned of whatever an earlier set with the same
+/// prefix left behind (a crash, a SIGKILL, a child killed while it created a service). Refuses
+/// to start beside a live set of the same prefix. Beside a live client of another kind (a
+/// reader in another language, say) it only removes the half-made services, and the dead
+/// nodes' resources once the supervisor's node exists.
+fn clean_domain(options: &SupervisorOptions) -> anyhow::Result<Domain> {
+    let config = millinav_kit::iceoryx_config(Some(&options.iox_prefix), Some(&options.iox_root))?;
+    let domain = Domain::of(&config);
+    let (set, clients): (Vec<_>, Vec<_>) = domain
+        .live_nodes()?
+        .into_iter()
+        .partition(|node| is_set_node(&node.name));
+    if !set.is_empty() {
+        let who: Vec<String> = set
+            .iter()
+            .map(|n| format!("{} (pid {})", n.name, n.pid))
+            .collect();
+        bail!(
+            "another set is running with --iox-prefix {} under --iox-root {}: {}. Stop it \
+             (`millinav ctl stop` with that prefix and root) or give this run its own prefix",
+            options.iox_prefix,
+            options.iox_root.display(),
+            who.join(", ")
+        );
+    }
+    if clients.is_empty() {
+        let removed = domain.wipe()?;
+        if removed.files + removed.shared_memory > 0 {
+            tracing::info!(
+                files = removed.files,
+                shared_memory = removed.shared_memory,
+                "removed what an earlier set with this prefix left behind"
+            );
+        }
+    } else {
+        tracing::info!(
+            ?clients,
+            "clients of another kind are connected to this prefix: keeping its files"
+        );
+        domain.sweep_half_made(std::time::SystemTime::now())?;
+    }
+    Ok(domain)
+}
+
+/// A node of a millinav set: the kit names them `<service>-<incarnation>`.
+fn is_set_node(name: &str) -> bool {
+    name.rsplit_once('-').is_some_and(|(service, incarnation)| {
+        ServiceId::from_name(service).is_some() && incarnation.parse::<u64>().is_ok()
+    })
 }
 
 /// The viewer's layout, sent with the recording: camera with its overlays and the top view
@@ -656,6 +862,12 @@ impl Supervisor {
                     format!("wall-time limit ({:?}) reached", self.options.max_wall_time)
                 }
                 Ok(Ending::ConfigError(_)) => "a service rejected its configuration".into(),
+                Ok(Ending::StoppedSafe(StoppedSafe::StartupOverBudget { service, .. })) => {
+                    format!("stopped safe: {service} did not start within its budget")
+                }
+                Ok(Ending::StoppedSafe(StoppedSafe::RestartStorm { service, .. })) => {
+                    format!("stopped safe: {service} kept failing (restart storm)")
+                }
                 Ok(Ending::BoardFault(name)) => {
                     format!("coil-driver board fault `{name}`: coils held at zero")
                 }
@@ -760,6 +972,7 @@ impl Supervisor {
         plan: &Plan,
         base_env: Vec<(String, String)>,
         rt: &Runtime,
+        domain: Domain,
     ) -> anyhow::Result<Self> {
         let log_dir = plan.run_dir.join("logs");
         let processes = options
@@ -781,6 +994,7 @@ impl Supervisor {
             events: EventLog::new(&plan.run_dir, rt.rec.clone())?,
             base_env,
             deadline_misses: BTreeMap::new(),
+            domain,
         })
     }
 }
@@ -834,8 +1048,10 @@ fn finish(
     drop(heartbeats);
     let _ = rt.rec.flush_blocking();
     let mut facts = supervisor.facts(&ending, &context);
+    let domain = supervisor.domain.clone();
     drop(supervisor);
     drop(rt);
+    leave_nothing_behind(&domain);
     facts.recording = match merge_recordings(run_dir) {
         Ok(Some(path)) => {
             tracing::info!(recording = %path.display(), "recording written");
@@ -859,6 +1075,7 @@ fn finish(
     }
     match ending? {
         Ending::ConfigError(error) => Err(error.into()),
+        Ending::StoppedSafe(error) => Err(error.into()),
         Ending::BoardFault(name) => bail!(
             "the run stopped safe: the coil-driver board reported `{name}` and coilbus held the \
              coils at zero (the reason is in {}/coilbus_link.csv and logs/coilbus.log)",
@@ -867,6 +1084,23 @@ fn finish(
         Ending::RunComplete | Ending::Signal | Ending::OperatorStop | Ending::WallTimeLimit => {
             Ok(())
         }
+    }
+}
+
+/// Removes the set's iceoryx2 files once its last node (the supervisor's) is gone, so that no
+/// half-made or stale service outlives the run. Clients of another kind still connected keep
+/// them.
+fn leave_nothing_behind(domain: &Domain) {
+    match domain.live_nodes() {
+        Ok(live) if live.is_empty() => match domain.wipe() {
+            Ok(removed) => tracing::debug!(?removed, "iceoryx2 files of the set removed"),
+            Err(e) => tracing::warn!("could not remove the set's iceoryx2 files: {e}"),
+        },
+        Ok(live) => tracing::info!(
+            ?live,
+            "nodes are still connected to the set's prefix: its iceoryx2 files stay"
+        ),
+        Err(e) => tracing::warn!("could not list the set's iceoryx2 nodes: {e}"),
     }
 }
 
@@ -949,8 +1183,11 @@ fn monitor(
             take_health(supervisor, heartbeats, &mut latest_health)?;
             return Ok(ending);
         }
-        // A live process that stopped beating is hung (or stopped): kill it; reap restarts it.
-        supervisor.kill_silent(now);
+        // A started process that stopped beating is hung (or stopped): kill it; reap restarts
+        // it. One still starting only has its budget.
+        if let Some(ending) = supervisor.watch_children(now) {
+            return Ok(ending);
+        }
         supervisor.restart_due()?;
         record_health(rt, &latest_health);
         if start.elapsed() > supervisor.options.max_wall_time {
@@ -971,7 +1208,11 @@ fn take_health(
     heartbeats: &Heartbeats,
     latest_health: &mut BTreeMap<u32, Heartbeat>,
 ) -> anyhow::Result<()> {
+    let now = Instant::now();
     for beat in heartbeats.health.receive_all()? {
+        if let Some(id) = ServiceId::from_u32(beat.service) {
+            supervisor.note_started(id, beat.incarnation, now);
+        }
         supervisor
             .deadline_misses
             .insert((beat.service, beat.incarnation), beat.deadline_misses);

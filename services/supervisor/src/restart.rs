@@ -58,18 +58,73 @@ impl Backoff {
     }
 }
 
-/// How long a live process has been silent, if that makes it hung: past its start-up grace
-/// and without a heartbeat for longer than `heartbeat_deadline`.
+/// How long a process that has started (it beat once) has been silent, if that makes it hung.
+/// A process that is still starting is never hung: [`startup_progress`] watches it instead.
 pub fn silent_too_long(
     now: Instant,
-    started_at: Instant,
     last_beat: Instant,
-    grace: Duration,
     heartbeat_deadline: Duration,
 ) -> Option<Duration> {
     let silent = now.saturating_duration_since(last_beat);
-    (now.saturating_duration_since(started_at) > grace && silent > heartbeat_deadline)
-        .then_some(silent)
+    (silent > heartbeat_deadline).then_some(silent)
+}
+
+/// How often a slow start is noted in the run's events (and on the console).
+pub const SLOW_START_NOTE_EVERY: Duration = Duration::from_secs(10);
+
+/// Where a process that has not beaten yet stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Startup {
+    /// Starting, nothing to say.
+    Starting,
+    /// Still starting after this long: note it (a loaded or cold machine), do not kill it.
+    Slow(Duration),
+    /// Its start-up budget has passed without a heartbeat.
+    OverBudget(Duration),
+}
+
+/// Where a starting process stands at `now`, given when it started, its budget, and when its
+/// slowness was last noted.
+pub fn startup_progress(
+    now: Instant,
+    started_at: Instant,
+    budget: Duration,
+    last_note: Option<Instant>,
+) -> Startup {
+    let waited = now.saturating_duration_since(started_at);
+    if waited > budget {
+        Startup::OverBudget(waited)
+    } else if waited >= SLOW_START_NOTE_EVERY
+        && last_note.is_none_or(|t| now.saturating_duration_since(t) >= SLOW_START_NOTE_EVERY)
+    {
+        Startup::Slow(waited)
+    } else {
+        Startup::Starting
+    }
+}
+
+/// The recent failures of one process, to tell a restart storm (a process that keeps dying:
+/// restarting it again will not help) from an occasional crash.
+#[derive(Debug, Clone, Default)]
+pub struct StormWatch {
+    failures: std::collections::VecDeque<Instant>,
+}
+
+impl StormWatch {
+    /// Records a failure at `at`; returns how many fell within the window when they make a
+    /// storm.
+    pub fn failed(&mut self, at: Instant, policy: &RestartPolicy) -> Option<usize> {
+        let window = Duration::from_millis(policy.storm_window_ms);
+        self.failures.push_back(at);
+        while self
+            .failures
+            .front()
+            .is_some_and(|t| at.saturating_duration_since(*t) > window)
+        {
+            self.failures.pop_front();
+        }
+        (self.failures.len() >= policy.storm_restarts as usize).then_some(self.failures.len())
+    }
 }
 
 /// Exit status of a process that called `exit(code)`.
@@ -86,7 +141,9 @@ mod tests {
             initial_backoff_ms: 100,
             max_backoff_ms: 1000,
             stable_after_ms: 5000,
-            startup_grace_ms: 3000,
+            startup_budget_ms: 3000,
+            storm_restarts: 5,
+            storm_window_ms: 60_000,
         }
     }
 
@@ -143,24 +200,51 @@ mod tests {
     }
 
     #[test]
-    fn silence_counts_only_after_the_grace_period() {
+    fn silence_counts_against_a_started_process() {
         let start = Instant::now();
-        let grace = ms(3000);
         let deadline = ms(500);
-        // Silent for 2 s but still starting up.
+        assert_eq!(silent_too_long(start + ms(400), start, deadline), None);
         assert_eq!(
-            silent_too_long(start + ms(2000), start, start, grace, deadline),
-            None
-        );
-        // Past the grace period, silent for 3.5 s.
-        assert_eq!(
-            silent_too_long(start + ms(3500), start, start, grace, deadline),
+            silent_too_long(start + ms(3500), start, deadline),
             Some(ms(3500))
         );
-        // Past the grace period, last beat 400 ms ago: alive.
+    }
+
+    #[test]
+    fn a_slow_start_is_noted_every_ten_seconds_until_its_budget() {
+        let start = Instant::now();
+        let budget = ms(60_000);
+        let at = |t| startup_progress(start + ms(t), start, budget, None);
+        assert_eq!(at(9_000), Startup::Starting);
+        assert_eq!(at(10_000), Startup::Slow(ms(10_000)));
+        let noted = Some(start + ms(10_000));
         assert_eq!(
-            silent_too_long(start + ms(3500), start, start + ms(3100), grace, deadline),
-            None
+            startup_progress(start + ms(15_000), start, budget, noted),
+            Startup::Starting
         );
+        assert_eq!(
+            startup_progress(start + ms(20_000), start, budget, noted),
+            Startup::Slow(ms(20_000))
+        );
+        assert_eq!(at(60_001), Startup::OverBudget(ms(60_001)));
+    }
+
+    #[test]
+    fn a_storm_is_so_many_failures_within_the_window() {
+        let policy = RestartPolicy {
+            storm_restarts: 3,
+            storm_window_ms: 10_000,
+            ..policy()
+        };
+        let start = Instant::now();
+        let mut watch = StormWatch::default();
+        // Failures spread wider than the window never make a storm.
+        for k in 0..10 {
+            assert_eq!(watch.failed(start + ms(6_000 * k), &policy), None);
+        }
+        let later = start + ms(100_000);
+        assert_eq!(watch.failed(later, &policy), None);
+        assert_eq!(watch.failed(later + ms(100), &policy), None);
+        assert_eq!(watch.failed(later + ms(200), &policy), Some(3));
     }
 }

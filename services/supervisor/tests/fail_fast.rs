@@ -1,6 +1,7 @@
 //! The supervisor binary with fake children (shell scripts named in a launch file): a failing
-//! `--check` starts nothing, a child exiting with code 78 stops the set, and any other exit is
-//! restarted with backoff.
+//! `--check` starts nothing, a child exiting with code 78 stops the set, any other exit is
+//! restarted with backoff until the failures make a restart storm, and a child that does not
+//! start within its budget stops the set (none of them ever beats).
 
 use std::os::unix::fs::PermissionsExt;
 use std::path::PathBuf;
@@ -17,6 +18,10 @@ struct Bench {
     name: String,
     dir: PathBuf,
     children: Vec<(String, PathBuf)>,
+    /// The launch file's `[restart]` table.
+    restart: String,
+    /// More keys of one process's `[[process]]` table.
+    process_keys: Vec<(String, String)>,
 }
 
 impl Bench {
@@ -29,7 +34,24 @@ impl Bench {
             name: name.into(),
             dir,
             children: Vec::new(),
+            process_keys: Vec::new(),
+            restart:
+                "[restart]\ninitial_backoff_ms = 50\nmax_backoff_ms = 200\nstable_after_ms = 5000\n\
+                      startup_budget_ms = 30000\nstorm_restarts = 1000\n"
+                    .into(),
         }
+    }
+
+    /// More keys in `process`'s `[[process]]` table.
+    fn keys(mut self, process: &str, keys: &str) -> Self {
+        self.process_keys.push((process.into(), keys.into()));
+        self
+    }
+
+    /// Another `[restart]` table for the launch file.
+    fn restart(mut self, table: &str) -> Self {
+        self.restart = format!("[restart]\n{table}");
+        self
     }
 
     /// A fake service: `on_check` runs for `--check`, `on_run` otherwise. Every start leaves a
@@ -62,14 +84,15 @@ impl Bench {
 
     /// `millinav run` on the fake set; returns its output once it exits.
     fn run(&self, max_wall_s: f64) -> Output {
-        let mut launch = String::from(
-            "[restart]\ninitial_backoff_ms = 50\nmax_backoff_ms = 200\nstable_after_ms = 5000\nstartup_grace_ms = 30000\n",
-        );
+        let mut launch = self.restart.clone();
         for (name, script) in &self.children {
             launch += &format!(
                 "[[process]]\nname = \"{name}\"\nbinary = \"{}\"\n",
                 script.display()
             );
+            for (_, keys) in self.process_keys.iter().filter(|(p, _)| p == name) {
+                launch += keys;
+            }
         }
         let launch_path = self.dir.join("launch.toml");
         std::fs::write(&launch_path, launch).expect("launch");
@@ -82,7 +105,11 @@ impl Bench {
             .arg(self.run_dir())
             .args(["--viewer", "none", "--max-wall-s", &max_wall_s.to_string()])
             .arg("--iox-prefix")
-            .arg(format!("sv{}{}_", std::process::id(), self.name))
+            .arg(format!(
+                "sv{}-{}_",
+                std::process::id(),
+                self.name.replace(|c: char| !c.is_ascii_alphanumeric(), "-")
+            ))
             .arg("--iox-root")
             .arg(self.dir.join("iox"))
             .env("MILLINAV_RERUN", "off")
@@ -181,4 +208,61 @@ fn any_other_exit_is_restarted_with_backoff() {
     assert!(events.contains("vision,restart,incarnation=2"), "{events}");
     assert!(bench.starts("vision") >= 3, "{events}");
     assert!(events.contains("wall_time_limit"), "{events}");
+}
+
+#[test]
+fn a_child_that_keeps_failing_stops_the_set_as_a_restart_storm() {
+    let bench = Bench::new("storm")
+        .restart("initial_backoff_ms = 50\nmax_backoff_ms = 100\nstorm_restarts = 3\nstorm_window_ms = 60000\n")
+        .child("plant", "exit 0", "exec sleep 30")
+        .child("vision", "exit 0", "echo 'vision: cannot open the model' >&2; exit 1");
+    let started = std::time::Instant::now();
+    let output = bench.run(30.0);
+    let console = stderr(&output);
+    assert_eq!(output.status.code(), Some(1), "{console}");
+    assert!(
+        console.contains("vision failed 3 times within 60 s (a restart storm)"),
+        "{console}"
+    );
+    assert!(console.contains("cannot open the model"), "{console}");
+    assert!(started.elapsed().as_secs_f64() < 10.0, "{console}");
+    assert_eq!(bench.starts("vision"), 3);
+    let events = bench.events();
+    assert!(
+        events.contains("vision,restart_storm,failures=3"),
+        "{events}"
+    );
+    assert!(events.contains("plant,stopped"), "{events}");
+    let summary = std::fs::read_to_string(bench.run_dir().join("summary.json")).unwrap_or_default();
+    assert!(summary.contains("restart storm"), "{summary}");
+}
+
+#[test]
+fn a_start_over_its_budget_stops_the_set_and_says_why() {
+    let bench = Bench::new("budget")
+        .restart("startup_budget_ms = 60000\nstorm_restarts = 1000\n")
+        .child("plant", "exit 0", "exec sleep 30")
+        .child(
+            "vision",
+            "exit 0",
+            "echo 'loading the model' >&2; exec sleep 30",
+        )
+        // Vision gets a budget of its own, shorter than the file's.
+        .keys("vision", "startup_budget_ms = 1500\n");
+    let output = bench.run(30.0);
+    let console = stderr(&output);
+    assert_eq!(output.status.code(), Some(1), "{console}");
+    assert!(
+        console.contains(
+            "vision did not finish starting (no heartbeat) within its start-up budget of 2 s"
+        ),
+        "{console}"
+    );
+    assert!(console.contains("loading the model"), "{console}");
+    let events = bench.events();
+    assert!(events.contains("vision,startup_over_budget"), "{events}");
+    assert!(!events.contains("heartbeat_missed"), "{events}");
+    assert!(!events.contains(",restart,"), "{events}");
+    // The plant, with the file's minute, was never taken for hung in the meantime.
+    assert_eq!(bench.starts("plant"), 1);
 }
