@@ -1,23 +1,32 @@
-//! `millinav`: the supervisor's command line.
+//! `millinav`: the front door. `run` and `ctl` are the supervisor's own; the tool commands hand
+//! their arguments to the workspace's tools next to this executable (`front_door`).
+use std::ffi::OsString;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::Context;
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
 use millinav_kit::scenario::ScenarioError;
+use millinav_supervisor::front_door::Tool;
 use millinav_supervisor::launch::{LaunchError, LaunchFile};
 use millinav_supervisor::restart::EXIT_CONFIG;
 use millinav_supervisor::{FailFast, SupervisorOptions, ViewerMode};
 
 /// millinav: autonomous navigation of a magnetic millirobot through a heart phantom.
 /// `millinav run` launches the process set (plant/camera, vision, flow, control, coilbus) on
-/// the digital twin, supervises it and writes a Rerun recording of the run.
+/// the digital twin, supervises it and writes a Rerun recording of the run. The other commands
+/// prepare a rig and study runs; `millinav <command> --help` shows each one's options.
 #[derive(Parser)]
 #[command(name = "millinav", version)]
 struct Cli {
     #[command(subcommand)]
     command: Commands,
+}
+
+/// An iceoryx2 prefix as `kit::iox_domain` accepts it.
+fn iox_prefix(text: &str) -> Result<String, String> {
+    millinav_kit::iox_domain::validate_prefix(text).map(|()| text.to_owned())
 }
 
 #[derive(Subcommand)]
@@ -36,8 +45,9 @@ enum Commands {
         /// Rerun viewer: auto spawns one when installed and a display exists.
         #[arg(long, value_enum, default_value = "auto")]
         viewer: ViewerMode,
-        /// iceoryx2 file prefix of the set (give each concurrent run its own).
-        #[arg(long, default_value = "millinav_")]
+        /// iceoryx2 file prefix of the set (give each concurrent run its own): letters, digits
+        /// and '-', ending in one '_'. The set owns every iceoryx2 file that begins with it.
+        #[arg(long, default_value = "millinav_", value_parser = iox_prefix)]
         iox_prefix: String,
         /// iceoryx2 root directory of the set. Keep it short: iceoryx2 creates Unix sockets
         /// under it, and their paths (root + prefix + a hash) must fit in 108 bytes.
@@ -64,7 +74,7 @@ enum Commands {
     /// refused the command (nothing changed), 2 when no answer came.
     Ctl {
         /// iceoryx2 file prefix of the running set.
-        #[arg(long, default_value = "millinav_")]
+        #[arg(long, default_value = "millinav_", value_parser = iox_prefix)]
         iox_prefix: String,
         /// iceoryx2 root directory of the running set.
         #[arg(long, default_value = "/tmp/millinav/iceoryx2")]
@@ -75,6 +85,76 @@ enum Commands {
         #[command(subcommand)]
         verb: CtlVerb,
     },
+    /// Coil and flow field maps: build them from a rig file, import FEA and CFD exports, fit
+    /// coils to gaussmeter readings.
+    #[command(disable_help_flag = true)]
+    Maps(ToolArgs),
+    /// Check a rig file against its maps, mask and limits.
+    Rig {
+        #[command(subcommand)]
+        what: RigCommand,
+    },
+    /// Camera calibration: intrinsics from checkerboard views, the floor homography, checks.
+    #[command(disable_help_flag = true)]
+    Calib(ToolArgs),
+    /// Plan an A* path through the rig's canal mask.
+    #[command(disable_help_flag = true)]
+    Plan(ToolArgs),
+    /// Vision: training crops, labelled frames, evaluation, the capsule's appearance.
+    Vision {
+        #[command(subcommand)]
+        what: VisionCommand,
+    },
+    /// Experiment matrices (the paper's table, robustness, latency), locally or on Slurm.
+    #[command(disable_help_flag = true)]
+    Experiments(ToolArgs),
+    /// Benchmarks: latency, loop rate, IPC, vision.
+    #[command(disable_help_flag = true)]
+    Bench(ToolArgs),
+}
+
+/// The arguments of a tool command, handed to the tool as they are (`--help` included).
+#[derive(Args)]
+struct ToolArgs {
+    #[arg(trailing_var_arg = true, allow_hyphen_values = true, num_args = 0..)]
+    args: Vec<OsString>,
+}
+
+#[derive(Subcommand)]
+enum RigCommand {
+    /// Check the rig file: maps, mask, coils, limits.
+    #[command(disable_help_flag = true)]
+    Check(ToolArgs),
+}
+
+#[derive(Subcommand)]
+enum VisionCommand {
+    /// Render training crops with masks and keypoints from the twin's camera.
+    #[command(disable_help_flag = true)]
+    Dataset(ToolArgs),
+    /// Turn LabelMe-labelled frames of your camera into training crops.
+    #[command(disable_help_flag = true)]
+    ImportLabels(ToolArgs),
+    /// Precision, recall, IoU, keypoint errors and latency of the localizers.
+    #[command(disable_help_flag = true)]
+    Eval(ToolArgs),
+    /// Measure the capsule's colours for the classical localizer.
+    #[command(disable_help_flag = true)]
+    Appearance(ToolArgs),
+}
+
+/// The directory of this executable: where the services and tools are.
+fn own_dir() -> anyhow::Result<PathBuf> {
+    Ok(std::env::current_exe()?
+        .parent()
+        .context("executable has no directory")?
+        .to_owned())
+}
+
+/// Runs the tool command `words` with `args` in place of this process.
+fn run_tool(words: &str, args: ToolArgs) -> anyhow::Result<ExitCode> {
+    let tool = Tool::named(words).with_context(|| format!("no tool for `millinav {words}`"))?;
+    Err(tool.exec(&own_dir()?, &args.args).into())
 }
 
 #[derive(Subcommand)]
@@ -129,6 +209,20 @@ fn main() -> ExitCode {
 
 fn run_cli(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
+        Commands::Maps(args) => run_tool("maps", args),
+        Commands::Rig {
+            what: RigCommand::Check(args),
+        } => run_tool("rig check", args),
+        Commands::Calib(args) => run_tool("calib", args),
+        Commands::Plan(args) => run_tool("plan", args),
+        Commands::Vision { what } => match what {
+            VisionCommand::Dataset(args) => run_tool("vision dataset", args),
+            VisionCommand::ImportLabels(args) => run_tool("vision import-labels", args),
+            VisionCommand::Eval(args) => run_tool("vision eval", args),
+            VisionCommand::Appearance(args) => run_tool("vision appearance", args),
+        },
+        Commands::Experiments(args) => run_tool("experiments", args),
+        Commands::Bench(args) => run_tool("bench", args),
         Commands::Ctl {
             iox_prefix,
             iox_root,
@@ -191,10 +285,7 @@ fn run_cli(cli: Cli) -> anyhow::Result<ExitCode> {
             };
             let bin_dir = match bin_dir {
                 Some(dir) => dir,
-                None => std::env::current_exe()?
-                    .parent()
-                    .context("executable has no directory")?
-                    .to_owned(),
+                None => own_dir()?,
             };
             let run_dir = run_dir.unwrap_or_else(|| {
                 let secs = std::time::SystemTime::now()

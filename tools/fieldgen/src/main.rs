@@ -17,6 +17,7 @@ enum Command {
     /// Steady laminar CFD of the phantom → flow maps at the control plane.
     Cfd(fieldgen::cfd::CfdArgs),
     /// Convert an ANSYS Fluent or OpenFOAM export into a millinav flow map.
+    #[command(name = "import-flow", alias = "import")]
     Import(fieldgen::import::ImportArgs),
     /// Import per-coil field data (COMSOL, ANSYS Maxwell, CSV; FEA or measured) into coil maps,
     /// gradients from a curl- and divergence-free local fit.
