@@ -17,7 +17,7 @@ cargo machete
 cargo clippy --release --workspace --all-targets --locked -- -D warnings
 # A private single-node Slurm cluster for the campaign test (slurm-wlm, munge; nothing started).
 ./scripts/setup_slurm.sh
-# PyTorch and onnx for the UNet fine-tune test (tools/unet/tests/finetune.rs), on CPU.
+# JAX (CPU wheels), optax and onnx for the UNet training tests (tools/unet/tests), on the CPU.
 ./scripts/setup_training.sh
 cargo test --release --workspace --locked
 # The serial protocol without std, for the board (rustup target installed on demand).

@@ -2,7 +2,7 @@
 """Checks that the JAX trainer computes the committed model: on the committed test crops
 (testset/), the graph export.py writes from the committed weights (model/unet_roi96.npz) and
 train.py's own forward pass (inference mode) must both give what the committed
-model/unet_roi96.onnx gives in onnxruntime, within TOLERANCE on every output.
+model/unet_roi96.onnx gives in onnxruntime, within TOLERANCE of each output.
 
 Usage: python3 tools/unet/check_export.py [--weights W.npz] [--reference R.onnx] [--crops SPLIT_DIR]
 Prints the largest absolute difference per output and exits 1 if one is over the tolerance.
@@ -21,8 +21,11 @@ import export  # noqa: E402
 import train  # noqa: E402
 import weights  # noqa: E402
 
-TOLERANCE = 1e-3
 OUTPUTS = ("seg", "keypoints", "presence")
+# Largest absolute difference allowed per output. Logits: 1e-3. Keypoints are in input pixels
+# (0 to 95), each the expectation of a softmax over the 9216 pixel coordinates, summed in float32
+# in another order by each implementation: 1e-2 px (a thousandth of a millimetre on the floor).
+TOLERANCE = {"seg": 1e-3, "keypoints": 1e-2, "presence": 1e-3}
 
 
 def run_onnx(path, images):
@@ -47,15 +50,15 @@ def main():
         candidates = {"export.py's graph": run_onnx(exported, images)}
     outputs, _ = train.forward(params, state, images, train=False)
     candidates["train.py's forward"] = [np.asarray(o) for o in outputs]
-    worst = 0.0
+    over = []
     print(f"{images.shape[0]} crops of {args.crops}, against {args.reference}")
     for name, got in candidates.items():
         diffs = [float(np.abs(g - r).max()) for g, r in zip(got, reference)]
-        worst = max(worst, *diffs)
         print(f"  {name}: max |diff| " + ", ".join(f"{o} {d:.2e}" for o, d in zip(OUTPUTS, diffs)))
-    if worst > TOLERANCE:
-        sys.exit(f"check_export: a difference of {worst:.2e} is over {TOLERANCE:.0e}")
-    print(f"ok: every difference within {TOLERANCE:.0e}")
+        over += [f"{name}: {o} {d:.2e} > {TOLERANCE[o]:.0e}" for o, d in zip(OUTPUTS, diffs) if d > TOLERANCE[o]]
+    if over:
+        sys.exit("check_export: over the tolerance: " + "; ".join(over))
+    print("ok: every difference within " + ", ".join(f"{o} {t:.0e}" for o, t in TOLERANCE.items()))
 
 
 if __name__ == "__main__":

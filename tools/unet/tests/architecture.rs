@@ -3,9 +3,11 @@
 //! quantizes with its keypoint head kept float (quantize.py finds the head in the graph, so the
 //! check holds whatever the depth); `--init` takes the shape from the weights and refuses a
 //! contradicting `--levels`; missing weights and shapes out of range are refused before any data
-//! is read. The default shape exports the committed model's graph node for node.
+//! is read. The committed weights export to a graph that computes what the committed model
+//! computes, with the layer names quantize.py looks for.
 //!
-//! Needs PyTorch in the project's venv (`scripts/setup_training.sh`, which the test command runs).
+//! Needs JAX, optax and onnx in the project's venv (`scripts/setup_training.sh`, which the test
+//! command runs).
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -112,7 +114,7 @@ fn a_deeper_unet_trains_quantizes_and_keeps_its_shape_on_init() {
         "{seen}"
     );
 
-    let weights = out_dir.join("m.pt");
+    let weights = out_dir.join("m.npz");
     let again = out_dir.join("again.onnx");
     let base = [
         "train.py",
@@ -141,8 +143,8 @@ fn a_deeper_unet_trains_quantizes_and_keeps_its_shape_on_init() {
 fn missing_weights_or_a_shape_out_of_range_are_refused_before_any_data_is_read() {
     for (options, names) in [
         (
-            &["--init", "/nonexistent/w.pt"][..],
-            "--init /nonexistent/w.pt: no such file",
+            &["--init", "/nonexistent/w.npz"][..],
+            "--init /nonexistent/w.npz: no such file",
         ),
         (&["--levels", "6"][..], "--levels 6"),
         (&["--width", "2"][..], "--width 2"),
@@ -153,17 +155,28 @@ fn missing_weights_or_a_shape_out_of_range_are_refused_before_any_data_is_read()
     }
 }
 
+/// check_export.py: export.py's graph of the committed weights, and train.py's own forward
+/// pass, give the committed ONNX model's outputs on the committed test crops.
 #[test]
-fn the_default_shape_exports_the_committed_graph() {
+fn the_committed_weights_export_to_what_the_committed_model_computes() {
+    let text = ok(run(&["check_export.py"]));
+    assert!(text.contains("ok: every difference within"), "{text}");
+}
+
+/// Every convolution of the committed graph is in the export under its name (quantize.py keeps
+/// `/heat/Conv` in float by name), and the export has the committed model's ports.
+#[test]
+fn the_default_shape_exports_the_committed_layers_by_name() {
     let script = r#"
-import sys, torch, onnx, train
-model = train.UNet()
-model.load_state_dict(torch.load("model/unet_roi96.pt", map_location="cpu"))
-model.eval()
-torch.onnx.export(model, torch.zeros(1, 3, 96, 96), sys.argv[1], input_names=["image"],
-                  output_names=["seg", "keypoints", "presence"], opset_version=17, dynamo=False)
-nodes = lambda path: [(n.name, n.op_type) for n in onnx.load(path).graph.node]
-print("same", nodes(sys.argv[1]) == nodes("model/unet_roi96.onnx"))
+import sys, onnx, export, weights
+export.export(weights.load("model/unet_roi96.npz"), sys.argv[1])
+def layers(path):
+    graph = onnx.load(path).graph
+    convs = sorted(n.name for n in graph.node if n.op_type in ("Conv", "ConvTranspose"))
+    ports = [p.name for p in list(graph.input) + list(graph.output)]
+    return convs, ports
+exported, committed = layers(sys.argv[1]), layers("model/unet_roi96.onnx")
+print("convolutions", len(committed[0]), "same", exported == committed)
 "#;
     let path =
         std::env::temp_dir().join(format!("millinav-unet-default-{}.onnx", std::process::id()));

@@ -4,7 +4,8 @@
 //! otherwise; a run with both trains, records them in its metrics and exports a model; a value
 //! out of range is refused before any data is read, naming the option.
 //!
-//! Needs PyTorch in the project's venv (`scripts/setup_training.sh`, which the test command runs).
+//! Needs JAX, optax and onnx in the project's venv (`scripts/setup_training.sh`, which the test
+//! command runs).
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -45,25 +46,26 @@ fn value(stdout: &str, key: &str) -> f64 {
 #[test]
 fn the_soft_iou_term_measures_the_overlap_and_is_off_by_default() {
     let script = r#"
-import torch, train
-mask = torch.zeros(2, 96, 96, dtype=torch.uint8)
+import numpy as np
+import train
+mask = np.zeros((2, 96, 96), dtype=np.uint8)
 mask[:, 40:56, 30:66] = 1
-sure = 30.0 * (2 * mask.float() - 1)                       # logit of the capsule class
-exact = torch.stack([-sure, sure], dim=1)
-inverted = torch.stack([sure, -sure], dim=1)
-print("exact", train.soft_jaccard(exact, mask).item())
-print("inverted", train.soft_jaccard(inverted, mask).item())
-torch.manual_seed(0)
-seg = torch.randn(2, 2, 96, 96)
-kp = torch.rand(2, 3, 2) * 95
-pres = torch.randn(2, 1)
-kps = torch.rand(2, 3, 2) * 95
-has = torch.ones(2)
+sure = 30.0 * (2 * mask.astype(np.float32) - 1)            # logit of the capsule class
+exact = np.stack([-sure, sure], axis=1)
+inverted = np.stack([sure, -sure], axis=1)
+print("exact", float(train.soft_jaccard(exact, mask)))
+print("inverted", float(train.soft_jaccard(inverted, mask)))
+rng = np.random.default_rng(0)
+seg = rng.standard_normal((2, 2, 96, 96)).astype(np.float32)
+kp = (rng.random((2, 3, 2)) * 95).astype(np.float32)
+pres = rng.standard_normal((2, 1)).astype(np.float32)
+kps = (rng.random((2, 3, 2)) * 95).astype(np.float32)
+has = np.ones(2, np.float32)
 paper = train.loss_fn(seg, kp, pres, mask, kps, has)
-print("default_diff", (train.loss_fn(seg, kp, pres, mask, kps, has, 0.0) - paper).item())
-print("weighted_diff", (train.loss_fn(seg, kp, pres, mask, kps, has, 0.5) - paper
-                         - 0.5 * train.soft_jaccard(seg, mask)).item())
-print("soft", train.soft_jaccard(seg, mask).item())
+print("default_diff", float(train.loss_fn(seg, kp, pres, mask, kps, has, 0.0) - paper))
+print("weighted_diff", float(train.loss_fn(seg, kp, pres, mask, kps, has, 0.5) - paper
+                             - 0.5 * train.soft_jaccard(seg, mask)))
+print("soft", float(train.soft_jaccard(seg, mask)))
 "#;
     let out = python(script, &[]);
     assert!(value(&out, "exact") < 2e-3, "{out}");
@@ -105,7 +107,7 @@ fn a_run_with_both_trains_and_records_them() {
     assert_eq!(recorded["ema"], 0.99);
     assert_eq!(recorded["epochs"], 2);
     assert!(std::fs::metadata(&model).expect("model exported").len() > 10_000);
-    assert!(dir.join("m.pt").exists(), "weights beside the model");
+    assert!(dir.join("m.npz").exists(), "weights beside the model");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -3,7 +3,7 @@
 //! went in; scale at 1, every crop is zoomed), and a wrong family or chance is refused before
 //! any data is read, naming the option and the families.
 //!
-//! Needs PyTorch in the project's venv (`scripts/setup_training.sh`, which the test command runs).
+//! Needs JAX in the project's venv (`scripts/setup_training.sh`, which the test command runs).
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -17,20 +17,23 @@ fn unet_dir() -> PathBuf {
 #[test]
 fn the_chances_reach_the_shifts() {
     let script = r#"
-import torch, augment
-torch.manual_seed(0)
-img = torch.rand(16, 3, 96, 96)
-mask = torch.zeros(16, 96, 96, dtype=torch.uint8)
+import jax
+import numpy as np
+import augment
+rng = np.random.default_rng(0)
+img = rng.random((16, 3, 96, 96), dtype=np.float32)
+mask = np.zeros((16, 96, 96), dtype=np.uint8)
 mask[:, 40:56, 30:66] = 1
-kps = torch.tensor([[[65.0, 48.0], [48.0, 48.0], [31.0, 48.0]]]).repeat(16, 1, 1)
+kps = np.tile(np.array([[[65.0, 48.0], [48.0, 48.0], [31.0, 48.0]]], np.float32), (16, 1, 1))
+key = jax.random.PRNGKey(0)
 none = {family: 0.0 for family in augment.FAMILIES}
-_, m, k = augment.camera_shifts(img, mask, kps, none)
-print("unchanged", str(torch.equal(m, mask)).lower(), str(torch.equal(k, kps)).lower())
-_, m, k = augment.camera_shifts(img, mask, kps, dict(none, scale=1.0))
-moved = ((k - kps).abs().amax(dim=(1, 2)) > 1e-3).sum().item()
+_, m, k = augment.camera_shifts(key, img, mask, kps, none)
+print("unchanged", str(np.array_equal(np.asarray(m), mask)).lower(), str(np.array_equal(np.asarray(k), kps)).lower())
+_, m, k = augment.camera_shifts(key, img, mask, kps, dict(none, scale=1.0))
+moved = int((np.abs(np.asarray(k) - kps).max(axis=(1, 2)) > 1e-3).sum())
 print("zoomed", moved)
 try:
-    augment.camera_shifts(img, mask, kps, {"fog": 0.5})
+    augment.camera_shifts(key, img, mask, kps, {"fog": 0.5})
     print("refused false")
 except ValueError as e:
     print("refused", str("fog" in str(e) and "jpeg" in str(e)).lower())

@@ -2,7 +2,7 @@
 use std::path::PathBuf;
 
 /// The project venv's python (`MILLINAV_VENV`, else `~/.cache/millinav/venv`), where
-/// `scripts/setup_training.sh` installs PyTorch.
+/// `scripts/setup_training.sh` installs JAX, optax and onnx.
 pub fn venv_python() -> PathBuf {
     std::env::var_os("MILLINAV_VENV")
         .map(PathBuf::from)
@@ -43,16 +43,18 @@ pub fn scratch_with_tiny_split(name: &str) -> (PathBuf, PathBuf) {
     let _ = std::fs::remove_dir_all(&dir);
     let data = dir.join("data");
     let script = r#"
-import sys, torch, train
-torch.manual_seed(0)
+import sys
+import numpy as np
+import train
+rng = np.random.default_rng(0)
 for split in ("train", "val"):
     n = 8
-    img = torch.rand(n, 3, 96, 96)
-    mask = torch.zeros(n, 96, 96, dtype=torch.uint8)
+    img = rng.random((n, 3, 96, 96), dtype=np.float32)
+    mask = np.zeros((n, 96, 96), dtype=np.uint8)
     mask[:, 40:56, 30:66] = 1
-    img[:, 2] = torch.where(mask.bool(), 0.9, img[:, 2])
-    kps = torch.tensor([[[65.0, 48.0], [48.0, 48.0], [31.0, 48.0]]]).repeat(n, 1, 1)
-    train.save_split(f"{sys.argv[1]}/{split}", img, mask, torch.ones(n), kps, 0.09)
+    img[:, 2] = np.where(mask == 1, 0.9, img[:, 2])
+    kps = np.tile(np.array([[[65.0, 48.0], [48.0, 48.0], [31.0, 48.0]]], np.float32), (n, 1, 1))
+    train.save_split(f"{sys.argv[1]}/{split}", img, mask, np.ones(n), kps, 0.09)
 "#;
     let out = std::process::Command::new(venv_python())
         .current_dir(env!("CARGO_MANIFEST_DIR"))
