@@ -107,18 +107,23 @@ fn children_killed_mid_start_a_hundred_times_never_wedge_the_set() {
         respawned(&run, service, pid);
     }
 
-    // Every child starts again and the loop runs on: nothing wedged.
-    let events = run.supervisor_events().expect("events");
-    let last_restart = events.iter().map(|e| e.monotonic_ns).max().unwrap_or(0);
+    // Every child's latest incarnation starts (reports ready after its last spawn) and the
+    // loop runs on: nothing wedged.
     let deadline = Instant::now() + Duration::from_secs(90);
     loop {
         let events = run.supervisor_events().expect("events");
         let not_ready: Vec<&str> = SERVICES
             .into_iter()
             .filter(|s| {
-                !events
+                let last_spawn = events
                     .iter()
-                    .any(|e| e.service == *s && e.event == "ready" && e.monotonic_ns > last_restart)
+                    .filter(|e| e.service == *s && e.event == "spawn")
+                    .map(|e| e.monotonic_ns)
+                    .max()
+                    .unwrap_or(0);
+                !events.iter().any(|e| {
+                    e.service == *s && e.event == "ready" && e.monotonic_ns > last_spawn
+                })
             })
             .collect();
         if not_ready.is_empty() {
