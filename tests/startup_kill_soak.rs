@@ -121,9 +121,9 @@ fn children_killed_mid_start_a_hundred_times_never_wedge_the_set() {
                     .map(|e| e.monotonic_ns)
                     .max()
                     .unwrap_or(0);
-                !events.iter().any(|e| {
-                    e.service == *s && e.event == "ready" && e.monotonic_ns > last_spawn
-                })
+                !events
+                    .iter()
+                    .any(|e| e.service == *s && e.event == "ready" && e.monotonic_ns > last_spawn)
             })
             .collect();
         if not_ready.is_empty() {
