@@ -15,17 +15,7 @@ source scripts/env.sh
 OUT="${1:-docs/images}"
 mkdir -p "$OUT"
 
-missing=()
-for pkg in xvfb xauth mesa-vulkan-drivers; do
-  dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
-done
-if ((${#missing[@]})); then
-  echo "screenshots: installing ${missing[*]}"
-  SUDO=""
-  [ "$(id -u)" -eq 0 ] || SUDO="sudo"
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
-fi
+scripts/apt_install.sh screenshots xvfb xauth mesa-vulkan-drivers
 
 WORK="$(mktemp -d)"
 trap 'rm -rf "$WORK"' EXIT

@@ -13,17 +13,7 @@ VENV="${MILLINAV_VENV:-$HOME/.cache/millinav/venv}"
 PYTHON_PINS=(rerun-sdk==0.36.3 onnxruntime==1.32.0 magpylib==6.3.0 iceoryx2==0.10.0)
 APT_PACKAGES=(libopencv-dev clang libclang-dev libzstd-dev pkg-config)
 
-missing=()
-for pkg in "${APT_PACKAGES[@]}"; do
-  dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
-done
-if ((${#missing[@]})); then
-  echo "setup: installing ${missing[*]}"
-  SUDO=""
-  [ "$(id -u)" -eq 0 ] || SUDO="sudo"
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
-fi
+"$(dirname "$0")/apt_install.sh" setup "${APT_PACKAGES[@]}"
 
 if [ ! -x "$VENV/bin/python" ]; then
   echo "setup: creating Python venv at $VENV"
