@@ -23,6 +23,7 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::controllers::NominalModel;
+use crate::predictor::Predictor;
 
 /// `[control.latency]` of a scenario.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -264,27 +265,14 @@ pub(crate) const MOTION_SHARE_WINDOW_S: f64 = 2.0;
 /// Longest span of force history kept (ns): far more than any usable pose age.
 const HISTORY_NS: u64 = 5_000_000_000;
 
-impl StatePredictor {
-    pub fn new(config: LatencyConfig, model: NominalModel) -> Self {
-        Self {
-            model,
-            segments: VecDeque::new(),
-            last: None,
-            pulsation: config.pulsation_hz.map(PulsationFit::new),
-            pose_interval_s: None,
-            motion_sq_m2: 0.0,
-            residual_sq_m2: 0.0,
-            config,
-        }
-    }
-
-    pub fn config(&self) -> &LatencyConfig {
+impl Predictor for StatePredictor {
+    fn config(&self) -> &LatencyConfig {
         &self.config
     }
 
     /// Forgets the model state (after a rejected pose or a hold); the force history stays,
     /// since it is what the coils did.
-    pub fn reset(&mut self) {
+    fn reset(&mut self) {
         self.last = None;
         if let Some(hz) = self.config.pulsation_hz {
             self.pulsation = Some(PulsationFit::new(hz));
@@ -293,7 +281,7 @@ impl StatePredictor {
 
     /// Records that `force_n` acts from `start_ns` on (the achieved force of a command, zero for
     /// hold and safe), against flow `flow_mps`.
-    pub fn commanded(&mut self, start_ns: u64, force_n: Vector2<f64>, flow_mps: Vector2<f64>) {
+    fn commanded(&mut self, start_ns: u64, force_n: Vector2<f64>, flow_mps: Vector2<f64>) {
         // A command can only replace what has not started yet.
         while self.segments.back().is_some_and(|s| s.start_ns >= start_ns) {
             self.segments.pop_back();
@@ -315,7 +303,7 @@ impl StatePredictor {
     /// Takes the position measured at `capture_ns` and predicts the motion until
     /// `actuation_ns`. `flow_mps` is the flow estimate for this pose (used before any command
     /// was recorded).
-    pub fn predict(
+    fn predict(
         &mut self,
         position_m: Vector2<f64>,
         capture_ns: u64,
@@ -374,7 +362,7 @@ impl StatePredictor {
     /// at the paper's 10 Hz and 3 Hz, 3.3, where with little delay a fit from so few poses
     /// leads a controller astray) unless the last pose is at least `lead_min_delay_periods`
     /// of a period old at `from_ns`.
-    pub fn lead_disturbance(&self, from_ns: u64, span_s: f64) -> Option<Vector2<f64>> {
+    fn lead_disturbance(&self, from_ns: u64, span_s: f64) -> Option<Vector2<f64>> {
         let (model, _) = self.last.as_ref()?;
         let span_s = span_s.max(0.0);
         let pulsation = match &self.pulsation {
@@ -395,7 +383,7 @@ impl StatePredictor {
 
     /// The share of the measured motion between poses that the model did not predict: RMS
     /// residual over RMS motion, at most 1 (0 before two poses).
-    pub fn unpredicted_motion_share(&self) -> f64 {
+    fn unpredicted_motion_share(&self) -> f64 {
         if self.motion_sq_m2 > 0.0 {
             (self.residual_sq_m2 / self.motion_sq_m2).sqrt().min(1.0)
         } else {
@@ -407,12 +395,27 @@ impl StatePredictor {
     /// recent RMS miss of the motion between poses (over `MOTION_SHARE_WINDOW_S`), grown in
     /// proportion to the horizon, never below one pose interval's (a command acts that long).
     /// 0 before two poses.
-    pub fn expected_miss_m(&self, horizon_s: f64) -> f64 {
+    fn expected_miss_m(&self, horizon_s: f64) -> f64 {
         match self.pose_interval_s {
             Some(interval_s) if interval_s > 0.0 => {
                 self.residual_sq_m2.sqrt() * (horizon_s / interval_s).max(1.0)
             }
             _ => 0.0,
+        }
+    }
+}
+
+impl StatePredictor {
+    pub fn new(config: LatencyConfig, model: NominalModel) -> Self {
+        Self {
+            model,
+            segments: VecDeque::new(),
+            last: None,
+            pulsation: config.pulsation_hz.map(PulsationFit::new),
+            pose_interval_s: None,
+            motion_sq_m2: 0.0,
+            residual_sq_m2: 0.0,
+            config,
         }
     }
 

@@ -20,6 +20,7 @@ use nalgebra::Vector2;
 
 use crate::controllers::NominalModel;
 use crate::latency::{LatencyConfig, Predicted, StatePredictor, MOTION_SHARE_WINDOW_S};
+use crate::predictor::Predictor;
 
 /// Averaging time of each candidate's prediction miss: the predictor's own averaging time for
 /// what its model misses (several pulsation periods), so a choice reflects the flow, not one
@@ -125,27 +126,57 @@ impl PredictorBank {
         }
     }
 
-    pub fn config(&self) -> &LatencyConfig {
+    /// The candidate in use.
+    fn active(&self) -> &StatePredictor {
+        &self.candidates[self.active].predictor
+    }
+
+    /// Switches to the candidate with the least miss when it beats the active one by the
+    /// margin, unless a shortfall holds the slowest.
+    fn choose(&mut self) {
+        if self
+            .last_capture_ns
+            .is_some_and(|t| t < self.hold_slowest_until_ns)
+        {
+            self.active = self.slowest;
+            return;
+        }
+        let Some(active_miss) = self.candidates[self.active].miss_sq_m2 else {
+            return;
+        };
+        let best = self
+            .candidates
+            .iter()
+            .enumerate()
+            .filter_map(|(i, c)| c.miss_sq_m2.map(|m| (i, m)))
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        if let Some((i, miss)) = best {
+            if miss < SWITCH_MARGIN * active_miss {
+                self.active = i;
+            }
+        }
+    }
+}
+
+impl Predictor for PredictorBank {
+    fn config(&self) -> &LatencyConfig {
         &self.config
     }
 
     /// The disturbance time constant in use, in delays.
-    pub fn active_disturbance_delays(&self) -> f64 {
-        self.candidates[self.active]
-            .predictor
-            .config()
-            .disturbance_delays
+    fn active_disturbance_delays(&self) -> f64 {
+        self.active().config().disturbance_delays
     }
 
     /// See [`StatePredictor::reset`]; the candidates' records stay.
-    pub fn reset(&mut self) {
+    fn reset(&mut self) {
         for candidate in &mut self.candidates {
             candidate.predictor.reset();
         }
     }
 
     /// See [`StatePredictor::commanded`].
-    pub fn commanded(&mut self, start_ns: u64, force_n: Vector2<f64>, flow_mps: Vector2<f64>) {
+    fn commanded(&mut self, start_ns: u64, force_n: Vector2<f64>, flow_mps: Vector2<f64>) {
         for candidate in &mut self.candidates {
             candidate.predictor.commanded(start_ns, force_n, flow_mps);
         }
@@ -153,7 +184,7 @@ impl PredictorBank {
 
     /// Scores every candidate against this pose, then predicts with each; returns the active
     /// one's prediction.
-    pub fn predict(
+    fn predict(
         &mut self,
         position_m: Vector2<f64>,
         capture_ns: u64,
@@ -203,58 +234,26 @@ impl PredictorBank {
     /// The command acting at `actuation_ns` asked `asked_n` and the coils made `achieved_n`:
     /// short by more than [`SHORTFALL_FRACTION`] of it, the slowest candidate is held for one
     /// scoring window.
-    pub fn achieved(&mut self, actuation_ns: u64, asked_n: Vector2<f64>, achieved_n: Vector2<f64>) {
+    fn achieved(&mut self, actuation_ns: u64, asked_n: Vector2<f64>, achieved_n: Vector2<f64>) {
         if (asked_n - achieved_n).norm() > SHORTFALL_FRACTION * asked_n.norm() {
             let hold_ns = actuation_ns.saturating_add((SCORE_WINDOW_S * 1e9) as u64);
             self.hold_slowest_until_ns = self.hold_slowest_until_ns.max(hold_ns);
         }
     }
 
-    /// Switches to the candidate with the least miss when it beats the active one by the
-    /// margin, unless a shortfall holds the slowest.
-    fn choose(&mut self) {
-        if self
-            .last_capture_ns
-            .is_some_and(|t| t < self.hold_slowest_until_ns)
-        {
-            self.active = self.slowest;
-            return;
-        }
-        let Some(active_miss) = self.candidates[self.active].miss_sq_m2 else {
-            return;
-        };
-        let best = self
-            .candidates
-            .iter()
-            .enumerate()
-            .filter_map(|(i, c)| c.miss_sq_m2.map(|m| (i, m)))
-            .min_by(|a, b| a.1.total_cmp(&b.1));
-        if let Some((i, miss)) = best {
-            if miss < SWITCH_MARGIN * active_miss {
-                self.active = i;
-            }
-        }
-    }
-
     /// See [`StatePredictor::lead_disturbance`] (the active candidate's).
-    pub fn lead_disturbance(&self, from_ns: u64, span_s: f64) -> Option<Vector2<f64>> {
-        self.candidates[self.active]
-            .predictor
-            .lead_disturbance(from_ns, span_s)
+    fn lead_disturbance(&self, from_ns: u64, span_s: f64) -> Option<Vector2<f64>> {
+        self.active().lead_disturbance(from_ns, span_s)
     }
 
     /// See [`StatePredictor::unpredicted_motion_share`] (the active candidate's).
-    pub fn unpredicted_motion_share(&self) -> f64 {
-        self.candidates[self.active]
-            .predictor
-            .unpredicted_motion_share()
+    fn unpredicted_motion_share(&self) -> f64 {
+        self.active().unpredicted_motion_share()
     }
 
     /// See [`StatePredictor::expected_miss_m`] (the active candidate's).
-    pub fn expected_miss_m(&self, horizon_s: f64) -> f64 {
-        self.candidates[self.active]
-            .predictor
-            .expected_miss_m(horizon_s)
+    fn expected_miss_m(&self, horizon_s: f64) -> f64 {
+        self.active().expected_miss_m(horizon_s)
     }
 }
 
