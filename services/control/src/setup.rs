@@ -1,6 +1,7 @@
 //! What the `[control]` table and the trajectory configure, validated: the loop a scenario
 //! describes.
 
+use std::path::Path;
 use std::sync::Arc;
 
 use fieldmaps::rigfile::Rig;
@@ -36,98 +37,139 @@ impl ControlSetup {
 /// configuration error naming the scenario and the field.
 pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
     let config: ControlConfig = scenario.section("control")?;
-    let field = |name: &str| format!("scenario {}: [control] {name}", scenario.path.display());
-    let at_least = |name: &str, value: f64, min: f64, strict: bool| {
+    let fields = Fields {
+        scenario: &scenario.path,
+    };
+    check_numbers(&config, &fields)?;
+    check_slew(&config, &fields)?;
+    check_subtables(&config, &fields)?;
+    let rig = scenario.rig()?;
+    let reference = reference_on(scenario, &rig)?;
+    Ok(ControlSetup {
+        config,
+        reference,
+        rig,
+    })
+}
+
+/// Names a field of the scenario's `[control]` tables in an error.
+struct Fields<'a> {
+    scenario: &'a Path,
+}
+
+impl Fields<'_> {
+    fn name(&self, name: &str) -> String {
+        format!("scenario {}: [control] {name}", self.scenario.display())
+    }
+
+    /// `value` is finite and above `min` (`strict`) or at least `min`.
+    fn at_least(&self, name: &str, value: f64, min: f64, strict: bool) -> Result<(), ConfigError> {
         let fine = value.is_finite() && if strict { value > min } else { value >= min };
         if fine {
-            Ok(())
-        } else {
-            let relation = if strict { ">" } else { ">=" };
-            Err(ConfigError::new(format!(
-                "{} must be {relation} {min}, got {value}",
-                field(name)
-            )))
+            return Ok(());
         }
-    };
-    at_least("hold_timeout_ms", config.hold_timeout_ms, 0.0, false)?;
-    at_least("max_speed_mps", config.max_speed_mps, 0.0, true)?;
-    if let Some(rate) = config.max_current_slew_a_per_s {
-        at_least("max_current_slew_a_per_s", rate, 0.0, true)?;
+        let relation = if strict { ">" } else { ">=" };
+        Err(ConfigError::new(format!(
+            "{} must be {relation} {min}, got {value}",
+            self.name(name)
+        )))
     }
-    if let Some(yielding) = &config.slew_yield {
-        let Some(rate) = config.max_current_slew_a_per_s else {
-            return Err(ConfigError::new(format!(
-                "{} needs a bound to yield from: set {}",
-                field("slew_yield"),
-                field("max_current_slew_a_per_s")
-            )));
-        };
-        let fraction = yielding.shortfall_fraction;
-        if !(fraction.is_finite() && fraction > 0.0 && fraction < 1.0) {
-            return Err(ConfigError::new(format!(
-                "{} must be within (0, 1), got {fraction}",
-                field("slew_yield.shortfall_fraction")
-            )));
+
+    /// A sub-table's own check (`invalid_field`) as an error naming `[control.<table>]`.
+    fn subtable(
+        &self,
+        table: &str,
+        invalid: Option<(&'static str, String)>,
+    ) -> Result<(), ConfigError> {
+        match invalid {
+            Some((name, why)) => Err(ConfigError::new(format!(
+                "scenario {}: [control.{table}] {name} {why}",
+                self.scenario.display()
+            ))),
+            None => Ok(()),
         }
-        at_least(
-            "slew_yield.max_current_slew_a_per_s",
-            yielding.max_current_slew_a_per_s,
-            rate,
-            true,
-        )?;
     }
-    at_least("velocity_filter_ms", config.velocity_filter_ms, 0.0, false)?;
+}
+
+/// The `[control]` table's own numbers.
+fn check_numbers(config: &ControlConfig, fields: &Fields<'_>) -> Result<(), ConfigError> {
+    fields.at_least("hold_timeout_ms", config.hold_timeout_ms, 0.0, false)?;
+    fields.at_least("max_speed_mps", config.max_speed_mps, 0.0, true)?;
+    fields.at_least("velocity_filter_ms", config.velocity_filter_ms, 0.0, false)?;
     if let Some(mt) = config.field_magnitude_mt {
-        at_least("field_magnitude_mt", mt, 0.0, false)?;
+        fields.at_least("field_magnitude_mt", mt, 0.0, false)?;
     }
-    at_least("aligning_torque_n_m", config.aligning_torque_n_m, 0.0, true)?;
-    at_least(
+    fields.at_least("aligning_torque_n_m", config.aligning_torque_n_m, 0.0, true)?;
+    fields.at_least(
         "coil_time_constant_ms",
         config.coil_time_constant_ms,
         0.0,
         false,
     )?;
-    at_least("drag_factor", config.drag_factor, 0.0, true)?;
-    at_least("omega0_n_per_t", config.omega0_n_per_t, 0.0, true)?;
-    at_least("field_row_weight", config.field_row_weight, 0.0, true)?;
-    at_least("replan_clearance_mm", config.replan_clearance_mm, 0.0, true)?;
+    fields.at_least("drag_factor", config.drag_factor, 0.0, true)?;
+    fields.at_least("omega0_n_per_t", config.omega0_n_per_t, 0.0, true)?;
+    fields.at_least("field_row_weight", config.field_row_weight, 0.0, true)?;
+    fields.at_least("replan_clearance_mm", config.replan_clearance_mm, 0.0, true)?;
     if !config.field_heading_deg.is_finite() {
         return Err(ConfigError::new(format!(
             "{} must be finite, got {}",
-            field("field_heading_deg"),
+            fields.name("field_heading_deg"),
             config.field_heading_deg
         )));
     }
     if let Some(limits) = &config.limits {
-        limits.validate().config_context(field("limits"))?;
+        limits.validate().config_context(fields.name("limits"))?;
     }
-    if let Some((name, why)) = config.gain_estimation.invalid_field() {
+    Ok(())
+}
+
+/// The slew bound and where it yields (a yield needs a bound, and a faster rate than it).
+fn check_slew(config: &ControlConfig, fields: &Fields<'_>) -> Result<(), ConfigError> {
+    if let Some(rate) = config.max_current_slew_a_per_s {
+        fields.at_least("max_current_slew_a_per_s", rate, 0.0, true)?;
+    }
+    let Some(yielding) = &config.slew_yield else {
+        return Ok(());
+    };
+    let Some(rate) = config.max_current_slew_a_per_s else {
         return Err(ConfigError::new(format!(
-            "scenario {}: [control.gain_estimation] {name} {why}",
-            scenario.path.display()
+            "{} needs a bound to yield from: set {}",
+            fields.name("slew_yield"),
+            fields.name("max_current_slew_a_per_s")
+        )));
+    };
+    let fraction = yielding.shortfall_fraction;
+    if !(fraction.is_finite() && fraction > 0.0 && fraction < 1.0) {
+        return Err(ConfigError::new(format!(
+            "{} must be within (0, 1), got {fraction}",
+            fields.name("slew_yield.shortfall_fraction")
         )));
     }
-    if let Some((name, why)) = config.observer.invalid_field() {
-        return Err(ConfigError::new(format!(
-            "scenario {}: [control.observer] {name} {why}",
-            scenario.path.display()
-        )));
-    }
+    fields.at_least(
+        "slew_yield.max_current_slew_a_per_s",
+        yielding.max_current_slew_a_per_s,
+        rate,
+        true,
+    )
+}
+
+/// The sub-tables' checks: gain estimation, observer, SMC delay model, latency.
+fn check_subtables(config: &ControlConfig, fields: &Fields<'_>) -> Result<(), ConfigError> {
+    fields.subtable("gain_estimation", config.gain_estimation.invalid_field())?;
+    fields.subtable("observer", config.observer.invalid_field())?;
     let sigmas = config.smc.delay_model_error_sigmas;
     if !(sigmas.is_finite() && (0.0..=10.0).contains(&sigmas)) {
         return Err(ConfigError::new(format!(
             "scenario {}: [control.smc] delay_model_error_sigmas must be within 0..=10 (standard \
              deviations of the coil gains' uncertainty), got {sigmas}",
-            scenario.path.display()
+            fields.scenario.display()
         )));
     }
-    if let Some((name, why)) = config.latency.invalid_field() {
-        return Err(ConfigError::new(format!(
-            "scenario {}: [control.latency] {name} {why}",
-            scenario.path.display()
-        )));
-    }
-    let rig = scenario.rig()?;
+    fields.subtable("latency", config.latency.invalid_field())
+}
+
+/// The scenario's reference trajectory, every waypoint inside the rig's canal.
+fn reference_on(scenario: &Scenario, rig: &Rig) -> Result<Reference, ConfigError> {
     let reference = Reference::new(
         &scenario.waypoints_m(),
         scenario.trajectory.speed_mm_s * 1e-3,
@@ -152,11 +194,7 @@ pub fn prepare(scenario: &Scenario) -> Result<ControlSetup, ConfigError> {
             rig.phantom.mask_path.display()
         )));
     }
-    Ok(ControlSetup {
-        config,
-        reference,
-        rig,
-    })
+    Ok(reference)
 }
 
 /// Validates the `[control]` table and the trajectory (what `--check` runs).

@@ -3,11 +3,11 @@
 
 use fieldmaps::allocation::{
     actuation_matrix_from, allocate_constrained_rated, allocate_constrained_slewed,
-    allocate_limited_rated, clamp_to_ratings, ConstrainedSettings,
+    allocate_limited_rated, clamp_to_ratings, AllocationError, ConstrainedSettings,
 };
 use fieldmaps::coils::CoilField;
 use fieldmaps::physics;
-use nalgebra::{DVector, Vector2, Vector3};
+use nalgebra::{DMatrix, DVector, Vector2, Vector3};
 use shm_schemas::{Pose, MAX_COILS};
 
 use super::feed::Fed;
@@ -50,43 +50,72 @@ impl ControlLoop {
         force: &Vector2<f64>,
         slew: Option<(&[f64; MAX_COILS], f64)>,
     ) -> ([f64; MAX_COILS], Vector2<f64>) {
-        let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
         let p3 = Vector3::new(position.x, position.y, 0.0);
+        let a = self.actuation_matrix(&p3, heading);
         let omega0 = self.config.omega0_n_per_t;
-        let coil_ids = &self.coil_ids;
-        let mut a = actuation_matrix_from(&self.rig.coil_field, &p3, &moment, coil_ids, omega0);
-        if let Some(estimator) = &self.gain_estimator {
-            // A coil's force and field both scale with its gain.
-            for (k, gain) in estimator.gains().into_iter().enumerate() {
-                a.column_mut(k).scale_mut(gain);
-            }
-        }
         // The coils make the desired field less the calibrated background, which is there anyway.
         let background = self.rig.coil_field.background_field(&p3);
         let b = self.field_at(field_heading) - background.xy();
         let c = DVector::from_vec(vec![force.x, force.y, omega0 * b.x, omega0 * b.y]);
-        let mut currents = [0.0; MAX_COILS];
         let previous = slew.map(|(previous, max_step_a)| {
             let previous = DVector::from_iterator(
-                coil_ids.len(),
-                coil_ids
+                self.coil_ids.len(),
+                self.coil_ids
                     .iter()
                     .map(|&id| previous.get(id).copied().unwrap_or(0.0)),
             );
             (previous, max_step_a)
         });
+        let mut currents = [0.0; MAX_COILS];
+        let mut achieved = Vector2::zeros();
+        if let Ok(effective) = self.solve(&a, &c, previous.as_ref()) {
+            let allocated = self.real_currents(&effective, previous.as_ref());
+            let wrench = &a * &self.effective_currents(&allocated);
+            achieved = Vector2::new(wrench[0], wrench[1]);
+            for (k, &id) in self.coil_ids.iter().enumerate() {
+                if let Some(current) = currents.get_mut(id) {
+                    *current = allocated[k];
+                }
+            }
+        }
+        (currents, achieved)
+    }
+
+    /// Paper Eq. 2's actuation matrix at `p3` for the magnet at `heading`, each coil's column
+    /// scaled by its learned gain (a coil's force and field both scale with it).
+    fn actuation_matrix(&self, p3: &Vector3<f64>, heading: f64) -> DMatrix<f64> {
+        let moment = physics::in_plane_moment(self.robot.magnet_moment_am2, heading);
+        let omega0 = self.config.omega0_n_per_t;
+        let mut a =
+            actuation_matrix_from(&self.rig.coil_field, p3, &moment, &self.coil_ids, omega0);
+        if let Some(estimator) = &self.gain_estimator {
+            for (k, gain) in estimator.gains().into_iter().enumerate() {
+                a.column_mut(k).scale_mut(gain);
+            }
+        }
+        a
+    }
+
+    /// The effective currents that make the wrench `c` with `a`: within reach of `previous`
+    /// under a slew bound, else the constrained QP or the paper's pseudo-inverse and scaling.
+    fn solve(
+        &self,
+        a: &DMatrix<f64>,
+        c: &DVector<f64>,
+        previous: Option<&(DVector<f64>, f64)>,
+    ) -> Result<DVector<f64>, AllocationError> {
         let w = self.config.field_row_weight;
         let settings = ConstrainedSettings {
             row_weights: Some(DVector::from_vec(vec![1.0, 1.0, w, w])),
             ..ConstrainedSettings::default()
         };
-        let allocated = if let Some((previous, max_step_a)) = &previous {
+        if let Some((previous, max_step_a)) = previous {
             // Under a slew limit the allocation itself stays within reach of the previous
             // currents, so the coils that can follow make up for those that cannot.
             let previous_effective = self.effective_currents(previous);
             allocate_constrained_slewed(
-                &a,
-                &c,
+                a,
+                c,
                 &self.effective_ratings,
                 &settings,
                 &previous_effective,
@@ -94,41 +123,38 @@ impl ControlLoop {
             )
             .map(|a| a.currents_a)
         } else if self.config.constrained_allocation {
-            allocate_constrained_rated(&a, &c, &self.effective_ratings, &settings)
+            allocate_constrained_rated(a, c, &self.effective_ratings, &settings)
                 .map(|a| a.currents_a)
         } else {
-            allocate_limited_rated(&a, &c, &self.effective_ratings).map(|a| a.currents_a)
-        };
-        let mut achieved = Vector2::zeros();
-        if let Ok(effective) = allocated {
-            // The allocation speaks the model's effective currents; a saturating coil needs more.
-            let mut allocated = DVector::from_iterator(
-                effective.len(),
-                effective
-                    .iter()
-                    .zip(&self.saturation)
-                    .map(|(&i, curve)| curve.as_ref().map_or(i, |c| c.actual_for(i))),
-            );
-            // Guard: a saturating coil's real current may step further than its effective one.
-            if let Some((previous, max_step_a)) = &previous {
-                let step = &allocated - previous;
-                let largest = step.amax();
-                if largest > *max_step_a {
-                    allocated = previous + step * (max_step_a / largest);
-                }
-            }
-            // Guard: the real currents within the real ratings whatever the curve did.
-            clamp_to_ratings(&mut allocated, &self.ratings);
-            let effective = self.effective_currents(&allocated);
-            let wrench = &a * &effective;
-            achieved = Vector2::new(wrench[0], wrench[1]);
-            for (k, &id) in coil_ids.iter().enumerate() {
-                if let Some(current) = currents.get_mut(id) {
-                    *current = allocated[k];
-                }
+            allocate_limited_rated(a, c, &self.effective_ratings).map(|a| a.currents_a)
+        }
+    }
+
+    /// The real coil currents of the allocation's effective ones (a saturating coil needs
+    /// more), kept within the slew step and the ratings whatever the curve did.
+    fn real_currents(
+        &self,
+        effective: &DVector<f64>,
+        previous: Option<&(DVector<f64>, f64)>,
+    ) -> DVector<f64> {
+        let mut allocated = DVector::from_iterator(
+            effective.len(),
+            effective
+                .iter()
+                .zip(&self.saturation)
+                .map(|(&i, curve)| curve.as_ref().map_or(i, |c| c.actual_for(i))),
+        );
+        // Guard: a saturating coil's real current may step further than its effective one.
+        if let Some((previous, max_step_a)) = previous {
+            let step = &allocated - previous;
+            let largest = step.amax();
+            if largest > *max_step_a {
+                allocated = previous + step * (max_step_a / largest);
             }
         }
-        (currents, achieved)
+        // Guard: the real currents within the real ratings whatever the curve did.
+        clamp_to_ratings(&mut allocated, &self.ratings);
+        allocated
     }
 
     /// The wider step `[control.slew_yield]` allows when the slew-bounded allocation made

@@ -163,22 +163,8 @@ impl ControlLoop {
                 robot.diameter_m / 2.0,
             ) * config.drag_factor,
         };
-        let mpc = config.mpc_gains(&rig, reference.waypoints());
-        let coil_ids = config.coil_ids(&rig);
-        let ratings = match &config.limits {
-            Some(limits) => CoilRatings::uniform(limits, coil_ids.len()),
-            None => rig.coil_ratings(&coil_ids),
-        };
-        let saturation: Vec<Option<SaturationCurve>> = coil_ids
-            .iter()
-            .map(|&id| rig.coils.get(id).and_then(|c| c.saturation.clone()))
-            .collect();
-        let effective_ratings = ratings.effective(&saturation);
-        let smc = SmcGains {
-            coil_time_constant_s: config.coil_time_constant_ms * 1e-3,
-            ..config.smc.clone()
-        };
-        let controller = config.controller.build(&config.pid, &smc, &mpc, model);
+        let coils = CoilSetup::of(&config, &rig);
+        let controller = build_controller(&config, &rig, &reference, model);
         // The predictor moves the whole body: the fluid it drags along counts (added mass).
         let moving = NominalModel {
             mass_kg: robot.mass_kg + robot.added_mass_kg,
@@ -188,36 +174,23 @@ impl ControlLoop {
         let observer = (config.velocity_estimate == VelocityEstimate::Observer).then(|| {
             VelocityObserver::new(config.observer.clone(), moving, config.latency.pulsation_hz)
         });
-        let config_heading = config.field_heading_deg.to_radians();
-        let field_magnitude_t = config.field_magnitude_t(robot.magnet_moment_am2);
-        let rotation_time_constant_s =
-            physics::rotational_drag(viscosity_pa_s, robot.length_m, robot.diameter_m / 2.0)
-                / (robot.magnet_moment_am2 * field_magnitude_t).max(1e-12);
-        // The capsule follows the commanded field through two lags in series: the coils'
-        // currents (L/R, when control is told it) and its own rotation; the sum of their time
-        // constants is the mean delay of the pair.
-        let follow_time_constant_s =
-            rotation_time_constant_s + config.coil_time_constant_ms.max(0.0) * 1e-3;
-        let alignment_window_s =
-            (config.gain_estimation.settle_ms * 1e-3).max(3.0 * follow_time_constant_s);
-        // Steadily turning at ω the overdamped capsule lags the field by asin(ω τ).
-        let max_field_turn_rate_rad_per_s =
-            FIELD_HEADING_STEP_DEG.to_radians().sin() / follow_time_constant_s.max(1e-6);
-        let field_turn_budget_rad = config
-            .field_heading_turn_deg
-            .map_or(0.0, |deg| deg.max(0.0).to_radians());
+        let field = FieldTiming::of(&config, &robot, viscosity_pa_s);
         let gain_estimator = config
             .gain_estimation
             .enabled
-            .then(|| CoilGainEstimator::new(config.gain_estimation.clone(), coil_ids.clone()));
+            .then(|| CoilGainEstimator::new(config.gain_estimation.clone(), coils.ids.clone()));
         Self {
+            field_heading_rad: config.field_heading_deg.to_radians(),
+            field_turn_budget_rad: config
+                .field_heading_turn_deg
+                .map_or(0.0, |deg| deg.max(0.0).to_radians()),
             config,
             reference,
             controller,
-            coil_ids,
-            ratings,
-            effective_ratings,
-            saturation,
+            coil_ids: coils.ids,
+            ratings: coils.ratings,
+            effective_ratings: coils.effective_ratings,
+            saturation: coils.saturation,
             rig,
             robot,
             incarnation,
@@ -231,12 +204,10 @@ impl ControlLoop {
             violations: ContractViolations::default(),
             gain_estimator,
             issued: VecDeque::with_capacity(ISSUED_HISTORY_LEN),
-            field_heading_rad: config_heading,
-            field_magnitude_t,
-            alignment_window_ns: (alignment_window_s.min(10.0) * 1e9) as u64,
-            rotation_settle_ns: ((3.0 * follow_time_constant_s).min(10.0) * 1e9) as u64,
-            max_field_turn_rate_rad_per_s,
-            field_turn_budget_rad,
+            field_magnitude_t: field.magnitude_t,
+            alignment_window_ns: field.alignment_window_ns,
+            rotation_settle_ns: field.rotation_settle_ns,
+            max_field_turn_rate_rad_per_s: field.max_turn_rate_rad_per_s,
             field_history: VecDeque::with_capacity(FIELD_HISTORY_LEN),
             magnet_offset_rad: 0.0,
             pull_force_n: Vector2::zeros(),
@@ -517,5 +488,84 @@ fn capped(asked: Vector2<f64>, cap: Option<f64>) -> Vector2<f64> {
     match cap {
         Some(cap) if asked.norm() > cap => asked * (cap / asked.norm()),
         _ => asked,
+    }
+}
+
+/// The configured controller, its MPC gains for the reference's path and its SMC told the
+/// coils' lag.
+fn build_controller(
+    config: &ControlConfig,
+    rig: &Rig,
+    reference: &Reference,
+    model: NominalModel,
+) -> Box<dyn Controller> {
+    let mpc = config.mpc_gains(rig, reference.waypoints());
+    let smc = SmcGains {
+        coil_time_constant_s: config.coil_time_constant_ms * 1e-3,
+        ..config.smc.clone()
+    };
+    config.controller.build(&config.pid, &smc, &mpc, model)
+}
+
+/// The coils the loop allocates for and what it knows of each.
+struct CoilSetup {
+    ids: Vec<usize>,
+    /// Each coil's limit and resistance: the rig's own, or `[control.limits]` for all.
+    ratings: CoilRatings,
+    /// The same in the field model's effective currents (differs for saturating coils).
+    effective_ratings: CoilRatings,
+    saturation: Vec<Option<SaturationCurve>>,
+}
+
+impl CoilSetup {
+    fn of(config: &ControlConfig, rig: &Rig) -> Self {
+        let ids = config.coil_ids(rig);
+        let ratings = match &config.limits {
+            Some(limits) => CoilRatings::uniform(limits, ids.len()),
+            None => rig.coil_ratings(&ids),
+        };
+        let saturation: Vec<Option<SaturationCurve>> = ids
+            .iter()
+            .map(|&id| rig.coils.get(id).and_then(|c| c.saturation.clone()))
+            .collect();
+        let effective_ratings = ratings.effective(&saturation);
+        Self {
+            ids,
+            ratings,
+            effective_ratings,
+            saturation,
+        }
+    }
+}
+
+/// The orientation field's magnitude and how fast the capsule follows it.
+struct FieldTiming {
+    magnitude_t: f64,
+    alignment_window_ns: u64,
+    rotation_settle_ns: u64,
+    max_turn_rate_rad_per_s: f64,
+}
+
+impl FieldTiming {
+    fn of(config: &ControlConfig, robot: &RobotParams, viscosity_pa_s: f64) -> Self {
+        let magnitude_t = config.field_magnitude_t(robot.magnet_moment_am2);
+        let rotation_time_constant_s =
+            physics::rotational_drag(viscosity_pa_s, robot.length_m, robot.diameter_m / 2.0)
+                / (robot.magnet_moment_am2 * magnitude_t).max(1e-12);
+        // The capsule follows the commanded field through two lags in series: the coils'
+        // currents (L/R, when control is told it) and its own rotation; the sum of their time
+        // constants is the mean delay of the pair.
+        let follow_time_constant_s =
+            rotation_time_constant_s + config.coil_time_constant_ms.max(0.0) * 1e-3;
+        let alignment_window_s =
+            (config.gain_estimation.settle_ms * 1e-3).max(3.0 * follow_time_constant_s);
+        Self {
+            magnitude_t,
+            alignment_window_ns: (alignment_window_s.min(10.0) * 1e9) as u64,
+            rotation_settle_ns: ((3.0 * follow_time_constant_s).min(10.0) * 1e9) as u64,
+            // Steadily turning at ω the overdamped capsule lags the field by asin(ω τ).
+            max_turn_rate_rad_per_s: FIELD_HEADING_STEP_DEG.to_radians().sin()
+                / follow_time_constant_s.max(1e-6),
+        }
     }
 }
