@@ -69,7 +69,7 @@ impl Primitive {
                 for seg in points_m.windows(2) {
                     let (a, b) = (seg[0], seg[1]);
                     let ab = b - a;
-                    let d = p - crate::rigfile::closest_point_on_segment(&a, &b, p);
+                    let d = p - closest_point_on_segment(&a, &b, p);
                     let dist = d.norm() - radius_m;
                     if dist < best.0 {
                         // On the centreline the gradient is undefined; pick the left normal.
@@ -373,8 +373,8 @@ impl ImageGeometry {
 
     /// The contract's image ↔ world mapping for this geometry (what the camera puts in every
     /// `FrameHeader`); the conversions below delegate to it so the convention lives in one place.
-    pub fn pixel_mapping(&self) -> shm_schemas::PixelMapping {
-        shm_schemas::PixelMapping {
+    pub fn pixel_mapping(&self) -> shm_schemas_core::PixelMapping {
+        shm_schemas_core::PixelMapping {
             mm_per_px: self.mm_per_px,
             origin_x_mm: self.origin_x_mm,
             origin_y_mm: self.origin_y_mm,
@@ -422,6 +422,22 @@ pub fn rasterize(phantom: &Phantom, geom: &ImageGeometry) -> Vec<u8> {
         }
     }
     mask
+}
+
+/// The point of segment a–b closest to `p` (`a` for a degenerate segment).
+pub(crate) fn closest_point_on_segment(
+    a: &Vector2<f64>,
+    b: &Vector2<f64>,
+    p: &Vector2<f64>,
+) -> Vector2<f64> {
+    let ab = b - a;
+    let len2 = ab.norm_squared();
+    let t = if len2 > 0.0 {
+        ((p - a).dot(&ab) / len2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    a + ab * t
 }
 
 #[cfg(test)]

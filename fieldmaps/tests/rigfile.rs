@@ -11,7 +11,7 @@ use fieldmaps::mask::CanalMask;
 use fieldmaps::phantom::{ImageGeometry, Phantom};
 use fieldmaps::rig::{CoilLimits, RobotParams};
 use fieldmaps::rigfile::{
-    CameraPixelFormat, FieldModel, Rig, RigCoilField, RigFileError, ZoneKind, MAX_RIG_COILS,
+    CameraPixelFormat, FieldModel, Rig, RigCoilField, RigFileError, ZoneKind, MAX_COILS,
 };
 use nalgebra::{Vector2, Vector3};
 
@@ -358,14 +358,14 @@ fn coil_count_limits() {
     // Exactly the maximum loads.
     let dir = TempDir::new("sixteen");
     let path = dir.0.join("sixteen.toml");
-    std::fs::write(&path, with_extra(MAX_RIG_COILS - 12)).unwrap();
+    std::fs::write(&path, with_extra(MAX_COILS - 12)).unwrap();
     let rig = Rig::load(&path).unwrap_or_else(|e| panic!("{e}"));
-    assert_eq!(rig.coils.len(), MAX_RIG_COILS);
-    assert_eq!(MAX_RIG_COILS, 16);
+    assert_eq!(rig.coils.len(), MAX_COILS);
+    assert_eq!(MAX_COILS, 16);
     // One more does not.
     expect_err(
         "seventeen",
-        &with_extra(MAX_RIG_COILS - 11),
+        &with_extra(MAX_COILS - 11),
         "coils",
         "17 coils, at most 16",
     );

@@ -11,7 +11,7 @@ use super::key_path::key_path_at;
 use super::schema;
 use super::{
     CameraCalibration, CameraPixelFormat, FieldModel, FlowCondition, Rig, RigCamera, RigCoil,
-    RigCoilField, RigFileError, RigPhantom, Route, Zone, ZoneKind, MAX_FILAMENTS, MAX_RIG_COILS,
+    RigCoilField, RigFileError, RigPhantom, Route, Zone, ZoneKind, MAX_COILS, MAX_FILAMENTS,
 };
 use super::{RIG_FORMAT, RIG_VERSION};
 use crate::calibration::{CalibratedField, CoilCalibration};
@@ -205,11 +205,11 @@ fn build_coils(
     if sections.is_empty() {
         return Err(ctx.err("coils", "a rig needs at least one coil"));
     }
-    if sections.len() > MAX_RIG_COILS {
+    if sections.len() > MAX_COILS {
         return Err(ctx.err(
             "coils",
             format!(
-                "{} coils, at most {MAX_RIG_COILS} are supported (MAX_RIG_COILS)",
+                "{} coils, at most {MAX_COILS} are supported (the contract's MAX_COILS)",
                 sections.len()
             ),
         ));

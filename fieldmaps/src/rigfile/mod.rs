@@ -25,12 +25,10 @@ use crate::phantom::{ImageGeometry, Inlet, Outlet};
 use crate::rig::{CoilLimits, RobotParams};
 use crate::walls::WallField;
 
-pub(crate) use zone::closest_point_on_segment;
 pub use zone::{Zone, ZoneKind};
 
-/// Most coils a rig may have. Must equal `shm_schemas::MAX_COILS` (the contract's coil arrays);
-/// fieldmaps does not depend on shm_schemas, so a workspace test ties the two.
-pub const MAX_RIG_COILS: usize = 16;
+/// Most coils a rig may have: the contract's limit (its coil arrays are this long).
+pub use shm_schemas_core::MAX_COILS;
 
 /// The `format` tag every rig file carries.
 pub const RIG_FORMAT: &str = "millinav-rig";
@@ -399,7 +397,7 @@ impl Rig {
         let _ = writeln!(s, "rig {} ({})", self.name, self.path.display());
         let _ = writeln!(
             s,
-            "coils: {} (max {MAX_RIG_COILS}), field model {model}, total power ≤ {} W",
+            "coils: {} (max {MAX_COILS}), field model {model}, total power ≤ {} W",
             self.coils.len(),
             self.max_total_power_w
         );

@@ -8,9 +8,6 @@ pub mod link;
 pub mod safety;
 pub use millinav_teensy_protocol as protocol;
 
-// The protocol crate carries its own coil maximum so it can stay dependency-free.
-const _: () = assert!(protocol::MAX_COILS == shm_schemas::MAX_COILS);
-
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 

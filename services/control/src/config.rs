@@ -5,7 +5,6 @@ use fieldmaps::rig::CoilLimits;
 use fieldmaps::rigfile::Rig;
 use nalgebra::Vector2;
 use serde::{Deserialize, Serialize};
-use shm_schemas::MAX_COILS;
 
 use crate::coil_gains::GainEstimationConfig;
 use crate::controllers::{ControllerKind, ForceSite, MpcGains, PidGains, SmcGains};
@@ -176,9 +175,6 @@ impl Default for ControlConfig {
         }
     }
 }
-
-// The rig's coils fit the contract's coil arrays.
-const _: () = assert!(fieldmaps::rigfile::MAX_RIG_COILS == MAX_COILS);
 
 impl ControlConfig {
     /// The current limits on `rig`: this table's, else the rig's.

@@ -15,7 +15,7 @@ use shm_schemas::{
 use crate::reference::Reference;
 use fieldmaps::rigfile::Rig;
 use millinav_kit::runlog::RunLogRow;
-use millinav_planner::{Mask, PlannerConfig};
+use millinav_planning::{Mask, PlannerConfig};
 
 /// One answered request (`operator_events.csv`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -61,7 +61,7 @@ impl Operator {
         rig: &Rig,
         session: bool,
         clearance_m: f64,
-    ) -> Result<Self, millinav_planner::PlanError> {
+    ) -> Result<Self, millinav_planning::PlanError> {
         let planner = PlannerConfig {
             clearance_m,
             ..PlannerConfig::default()
@@ -168,7 +168,7 @@ impl Operator {
                 let path = if verb == OperatorVerb::Goto {
                     let [x, y] = request.waypoints_m[0];
                     let goal = Vector2::new(x, y);
-                    let plan = millinav_planner::plan(
+                    let plan = millinav_planning::plan(
                         &self.mask,
                         &self.geometry,
                         &here,

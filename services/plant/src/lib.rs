@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use fieldmaps::flowmap::FlowMap;
 use fieldmaps::rig::FluidParams;
-use fieldmaps::rigfile::{CameraPixelFormat, Rig, MAX_RIG_COILS};
+use fieldmaps::rigfile::{CameraPixelFormat, Rig};
 use millinav_kit::ports::{FrameOutbox, Outbox};
 use millinav_kit::recording;
 use millinav_kit::runlog::{ContactRow, RunLogRow, RunLogWriter, TeensyEventRow, TruthRow};
@@ -362,11 +362,10 @@ pub fn initial_state(scenario: &Scenario, config: &PlantConfig, model: &PlantMod
 }
 
 // The twin's coil arrays are the contract's.
-const _: () = assert!(MAX_RIG_COILS == MAX_COILS);
 
 /// The board's channel currents as the twin's coil currents (missing channels drive nothing).
-fn twin_currents(board_a: &[f64]) -> [f64; MAX_RIG_COILS] {
-    let mut out = [0.0; MAX_RIG_COILS];
+fn twin_currents(board_a: &[f64]) -> [f64; MAX_COILS] {
+    let mut out = [0.0; MAX_COILS];
     for (twin, board) in out.iter_mut().zip(board_a) {
         *twin = *board;
     }
@@ -499,7 +498,7 @@ struct Twin<'s> {
     last_recorded: Option<u64>,
     wall_start: Instant,
     /// The coils' command before the current one: what they drive during the command delay.
-    previous_command_a: [f64; MAX_RIG_COILS],
+    previous_command_a: [f64; MAX_COILS],
 }
 
 impl<'s> Twin<'s> {
@@ -576,7 +575,7 @@ impl<'s> Twin<'s> {
             fired: Vec::new(),
             last_recorded: None,
             wall_start: Instant::now(),
-            previous_command_a: [0.0; MAX_RIG_COILS],
+            previous_command_a: [0.0; MAX_COILS],
         })
     }
 
@@ -764,7 +763,7 @@ impl<'s> Twin<'s> {
     /// board drives when it missed its deadline; `None` until the chain has answered once (the
     /// run starts when every process is up, not when the plant happens to be). Realtime: what
     /// the board drives at the next frame time.
-    fn await_command(&mut self) -> Option<[f64; MAX_RIG_COILS]> {
+    fn await_command(&mut self) -> Option<[f64; MAX_COILS]> {
         match self.scenario.run.mode {
             ClockMode::Lockstep => {
                 let (outputs, in_time) = self
@@ -806,7 +805,7 @@ impl<'s> Twin<'s> {
     /// Steps the physics one frame period with `currents` commanded: in lockstep from
     /// `command_delay_ms` into the frame on (the previous command until then), in real time
     /// from the frame's start (the set's own delays are real).
-    fn advance(&mut self, currents: &[f64; MAX_RIG_COILS]) {
+    fn advance(&mut self, currents: &[f64; MAX_COILS]) {
         let delay_s = match self.scenario.run.mode {
             ClockMode::Lockstep => self.config.command_delay_ms * 1e-3,
             ClockMode::Realtime => 0.0,
@@ -870,7 +869,7 @@ impl TruthCsv {
             lockstep_misses: t.lockstep_misses,
             sum_sq_current_a2: Some(sum_sq_current),
             coil_currents_a: Some(TruthRow::format_currents(
-                &t.applied_currents_a[..(t.active_coils as usize).min(MAX_RIG_COILS)],
+                &t.applied_currents_a[..(t.active_coils as usize).min(MAX_COILS)],
             )),
         })?;
         Ok(())

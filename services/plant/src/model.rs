@@ -21,7 +21,7 @@ use fieldmaps::coils::CoilField;
 use fieldmaps::flowmap::FlowMap;
 use fieldmaps::physics::{self, wrap_angle};
 use fieldmaps::rig::{FluidParams, RobotParams, SaturationCurve};
-use fieldmaps::rigfile::{RigPhantom, MAX_RIG_COILS};
+use fieldmaps::rigfile::{RigPhantom, MAX_COILS};
 use fieldmaps::walls::WallField;
 use nalgebra::{Matrix2, Vector2, Vector3};
 use rand_distr::{Distribution, Normal};
@@ -155,7 +155,7 @@ pub struct PlantState {
     pub heading_rad: f64,
     /// Currents actually flowing in the coils (after the L/R lag); the rig's coils first, the
     /// rest of the array stays 0.
-    pub coil_currents_a: [f64; MAX_RIG_COILS],
+    pub coil_currents_a: [f64; MAX_COILS],
     /// True when the capsule touched a wall at any substep of the last `step`.
     pub wall_contact: bool,
     /// Number of contact onsets (free → touching transitions) since the start.
@@ -182,7 +182,7 @@ pub struct PlantModel {
     pub steady_flow: FlowMap,
     pub config: PlantPhysicsConfig,
     /// True gain of each coil relative to its nominal map.
-    pub coil_gains: [f64; MAX_RIG_COILS],
+    pub coil_gains: [f64; MAX_COILS],
     /// Each coil's saturation (the rig file's `saturation`), applied after the gain.
     pub saturation: Vec<Option<SaturationCurve>>,
     /// Recirculation vortex and noise modes of the true flow.
@@ -258,7 +258,7 @@ impl PlantModel {
         let mut rng = rng_streams::coil_gain_rng(seed);
         let gain_noise = Normal::new(0.0, config.coil_gain_error_std.abs())
             .unwrap_or_else(|_| Normal::new(0.0, 0.0).expect("zero std is valid"));
-        let mut coil_gains = [1.0; MAX_RIG_COILS];
+        let mut coil_gains = [1.0; MAX_COILS];
         for g in coil_gains.iter_mut() {
             *g = 1.0 + gain_noise.sample(&mut rng);
         }
@@ -328,7 +328,7 @@ impl PlantModel {
             position_m,
             velocity_mps: Vector2::zeros(),
             heading_rad,
-            coil_currents_a: [0.0; MAX_RIG_COILS],
+            coil_currents_a: [0.0; MAX_COILS],
             wall_contact: false,
             contact_events: 0,
             contact_time_s: 0.0,
@@ -392,7 +392,7 @@ impl PlantModel {
 
     /// Number of coils of the rig (the first entries of the current arrays).
     pub fn coil_count(&self) -> usize {
-        self.coils.coil_count().min(MAX_RIG_COILS)
+        self.coils.coil_count().min(MAX_COILS)
     }
 
     /// Advances the state by `dt` with the given commanded coil currents (one per coil of the

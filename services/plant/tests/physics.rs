@@ -230,7 +230,7 @@ fn huge_currents_never_push_the_capsule_out_of_the_canal() {
     let mut max_speed: f64 = 0.0;
     for frame in 0..400 {
         // A new wild command every 20 frames: up to 500 A per coil.
-        let command: [f64; fieldmaps::rigfile::MAX_RIG_COILS] = if frame % 20 == 0 {
+        let command: [f64; fieldmaps::rigfile::MAX_COILS] = if frame % 20 == 0 {
             std::array::from_fn(|_| rng.random_range(-500.0..500.0))
         } else {
             s.coil_currents_a

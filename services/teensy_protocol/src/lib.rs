@@ -34,9 +34,8 @@ use crc::{Crc, CRC_16_IBM_3740};
 /// the version byte and carries the coil count in `SetCurrents` and `Telemetry`.
 pub const PROTOCOL_VERSION: u8 = 2;
 
-/// Most coils one frame can address; coilbus asserts at compile time that this equals
-/// `shm_schemas::MAX_COILS` (kept here so the crate needs nothing but `crc`).
-pub const MAX_COILS: usize = 16;
+/// Most coils one frame can address: the contract's limit.
+pub use shm_schemas_core::MAX_COILS;
 
 pub const SYNC: [u8; 2] = [0xA5, 0x5A];
 pub const HEADER_LEN: usize = 2 + 1 + 1 + 2 + 4;

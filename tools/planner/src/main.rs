@@ -10,7 +10,8 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Parser;
 use fieldmaps::rigfile::Rig;
-use millinav_planner::{
+use millinav_planner::load_mask;
+use millinav_planning::{
     geometry_for, plan, scenario_with_plan, trajectory_toml, Mask, PlannerConfig,
 };
 use nalgebra::Vector2;
@@ -101,7 +102,7 @@ fn main() -> anyhow::Result<()> {
             )
         }
         Some(path) => {
-            let mask = Mask::load(path)?;
+            let mask = load_mask(path)?;
             let same_size = mask.width == rig_geom.width_px && mask.height == rig_geom.height_px;
             let geom = match args.mm_per_px {
                 None if same_size => rig_geom,
@@ -175,7 +176,7 @@ fn log_plan(
     path: &std::path::Path,
     image: Option<&std::path::Path>,
     mask: &Mask,
-    plan: &millinav_planner::Plan,
+    plan: &millinav_planning::Plan,
 ) -> anyhow::Result<()> {
     use opencv::prelude::*;
     let rec = rerun::RecordingStreamBuilder::new("millinav").save(path)?;

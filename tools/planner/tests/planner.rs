@@ -5,7 +5,8 @@ use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
 use fieldmaps::phantom::{ImageGeometry, Phantom};
-use millinav_planner::{
+use millinav_planner::{load_mask, MaskLoadError};
+use millinav_planning::{
     astar_grid, distance_transform, geometry_for, plan, step_cost, CostGrid, Mask, PlanError,
     PlannerConfig,
 };
@@ -155,7 +156,7 @@ fn default_phantom_plan() {
     // Every waypoint keeps (almost) the 5 mm clearance, measured on the mask's distance
     // transform (the phantom's min-of-primitives SDF underestimates clearance at junctions);
     // smoothing may cut a corner slightly.
-    let dist = distance_transform(&mask).unwrap();
+    let dist = distance_transform(&mask);
     for w in wp {
         let (c, r) = geom.pixel_of(w).unwrap();
         let clearance_m = f64::from(dist[(r * geom.width_px + c) as usize]) * px;
@@ -222,8 +223,8 @@ fn clear_errors() {
     ));
     assert!(Mask::new(3, 3, vec![0; 8]).is_err());
     assert!(matches!(
-        Mask::load(std::path::Path::new("/nonexistent/mask.png")),
-        Err(PlanError::MaskUnreadable(_))
+        load_mask(std::path::Path::new("/nonexistent/mask.png")),
+        Err(MaskLoadError::Unreadable(_))
     ));
 }
 
@@ -253,9 +254,69 @@ fn png_mask_roundtrip() {
             .unwrap();
     let path = std::env::temp_dir().join(format!("millinav-planner-{}.png", std::process::id()));
     assert!(opencv::imgcodecs::imwrite_def(path.to_str().unwrap(), &mat).unwrap());
-    let loaded = Mask::load(&path).unwrap();
+    let loaded = load_mask(&path).unwrap();
     let _ = std::fs::remove_file(&path);
     assert_eq!(loaded, mask);
+}
+
+/// OpenCV's exact distance transform (`DIST_L2`, `DIST_MASK_PRECISE`), which the planning
+/// library's own must reproduce.
+fn opencv_distance_transform(mask: &Mask) -> Vec<f32> {
+    use opencv::core as cv;
+    use opencv::prelude::*;
+    let binary: Vec<u8> = mask
+        .data
+        .iter()
+        .map(|&v| if v != 0 { 255 } else { 0 })
+        .collect();
+    let src =
+        cv::Mat::new_rows_cols_with_data::<u8>(mask.height as i32, mask.width as i32, &binary)
+            .unwrap();
+    let mut dist = cv::Mat::default();
+    opencv::imgproc::distance_transform(
+        &src,
+        &mut dist,
+        opencv::imgproc::DIST_L2,
+        opencv::imgproc::DIST_MASK_PRECISE,
+        cv::CV_32F,
+    )
+    .unwrap();
+    dist.try_clone()
+        .unwrap()
+        .data_typed::<f32>()
+        .unwrap()
+        .to_vec()
+}
+
+#[test]
+fn distance_transform_equals_opencvs() {
+    let mut rng = SeededRng::seeded(11);
+    for case in 0..40 {
+        let w = 1 + (rng.next() * 90.0) as u32;
+        let h = 1 + (rng.next() * 90.0) as u32;
+        let walls = 0.002 + 0.3 * rng.next();
+        let mut data: Vec<u8> = (0..w * h)
+            .map(|_| if rng.next() < walls { 0 } else { 255 })
+            .collect();
+        data[0] = 0; // at least one wall pixel (without one OpenCV's value is a sentinel)
+        let mask = Mask::new(w, h, data).unwrap();
+        let ours = distance_transform(&mask);
+        let theirs = opencv_distance_transform(&mask);
+        let worst = ours
+            .iter()
+            .zip(&theirs)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert_eq!(
+            ours, theirs,
+            "case {case}: {w}x{h}, worst difference {worst}"
+        );
+    }
+    // And on the committed rig's canal mask, where the planner runs.
+    let rig = fieldmaps::rigfile::Rig::load(&rig_file("paper")).unwrap();
+    let geom = *rig.phantom.mask.geometry();
+    let mask = Mask::new(geom.width_px, geom.height_px, rig.phantom.mask.to_bytes()).unwrap();
+    assert_eq!(distance_transform(&mask), opencv_distance_transform(&mask));
 }
 
 fn rig_file(name: &str) -> std::path::PathBuf {

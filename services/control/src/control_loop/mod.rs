@@ -25,9 +25,9 @@ use self::feed::Fed;
 use crate::coil_gains::{CoilGainEstimator, GainUpdate};
 use crate::config::ControlConfig;
 use crate::controllers::{ControlInput, ControlTerms, Controller, NominalModel, SmcGains};
+use crate::latency::Predictor;
+use crate::latency::PredictorBank;
 use crate::observer::{VelocityEstimate, VelocityObserver};
-use crate::predictor::Predictor;
-use crate::predictor_bank::PredictorBank;
 use crate::reference::{Reference, ReferenceSample};
 
 /// Allowance on top of `max_speed_mps · Δt` before a pose counts as a jump, so that
@@ -233,7 +233,7 @@ impl ControlLoop {
             stamp: pose.stamp,
             control_incarnation: self.incarnation,
             controller_id: self.controller.id(),
-            // The rig's count (a rig file holds at most MAX_RIG_COILS = MAX_COILS coils).
+            // The rig's count (a rig file holds at most MAX_COILS coils).
             active_coils: self.coil_count() as u32,
             ..Default::default()
         }
