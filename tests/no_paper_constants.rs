@@ -4,7 +4,7 @@
 //! to the paper's rig. Defaults that a file overrides live in `fieldmaps` (the paper rig's
 //! path, the parametric phantom used to draw `paper/heart_mask.png`), not in services.
 
-use std::path::{Path, PathBuf};
+use millinav_tests::sources::{code_paths, test_module_files, without_comment};
 
 /// Names of the paper's rig in code, and its numbers as they were written there.
 const FORBIDDEN: &[(&str, &str)] = &[
@@ -35,40 +35,23 @@ const FORBIDDEN: &[(&str, &str)] = &[
     ("-14.0, 2.5", "the paper's vortex centre"),
 ];
 
-fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
-    let Ok(entries) = std::fs::read_dir(dir) else {
-        return;
-    };
-    for entry in entries.flatten() {
-        let path = entry.path();
-        if path.is_dir() {
-            rust_files(&path, out);
-        } else if path.extension().is_some_and(|e| e == "rs") {
-            out.push(path);
-        }
-    }
-}
-
 #[test]
 fn services_name_no_paper_constant() {
     let services = fieldmaps::data_root().join("services");
     let mut files = Vec::new();
     for entry in std::fs::read_dir(&services).expect("services/").flatten() {
-        rust_files(&entry.path().join("src"), &mut files);
+        // Unit tests may use the committed paper rig as their fixture.
+        files.extend(code_paths(&entry.path().join("src")));
     }
     assert!(
         files.len() > 20,
         "found only {} service sources",
         files.len()
     );
-    let test_modules = test_module_files(&files);
     let mut hits = Vec::new();
-    for file in files.iter().filter(|f| !test_modules.contains(f)) {
-        let text = std::fs::read_to_string(file).expect("readable source");
-        // Unit tests may use the committed paper rig as their fixture.
-        let code = before_inline_tests(&text);
+    for (file, code) in &files {
         for (line_no, line) in code.lines().enumerate() {
-            let line = line.split("//").next().unwrap_or("");
+            let line = without_comment(line);
             for (pattern, what) in FORBIDDEN {
                 if names(line, pattern) {
                     hits.push(format!(
@@ -85,57 +68,6 @@ fn services_name_no_paper_constant() {
         "services name the paper's rig; the rig file should say it:\n{}",
         hits.join("\n")
     );
-}
-
-/// The source before its first inline `#[cfg(test)] mod name {` block (a `#[cfg(test)] mod
-/// name;` declaration does not end the scan: code after it is still a code path).
-fn before_inline_tests(text: &str) -> &str {
-    let mut from = 0;
-    while let Some(at) = text[from..].find("#[cfg(test)]") {
-        let start = from + at;
-        let rest = text[start + "#[cfg(test)]".len()..].trim_start();
-        let header = rest.lines().next().unwrap_or("");
-        if header.starts_with("mod ") && header.trim_end().ends_with('{') {
-            return &text[..start];
-        }
-        from = start + 1;
-    }
-    text
-}
-
-/// The files of modules declared `#[cfg(test)] mod name;`: unit tests kept in a file of their
-/// own (`name.rs` or `name/mod.rs` beside the declaring module's own directory).
-fn test_module_files(files: &[PathBuf]) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    for file in files {
-        let Ok(text) = std::fs::read_to_string(file) else {
-            continue;
-        };
-        let stem = file.file_stem().and_then(|s| s.to_str()).unwrap_or("");
-        let parent = file.parent().unwrap_or(Path::new("."));
-        // `lib.rs`, `main.rs` and `mod.rs` own their directory; `foo.rs` owns `foo/`.
-        let dir = if matches!(stem, "lib" | "main" | "mod") {
-            parent.to_path_buf()
-        } else {
-            parent.join(stem)
-        };
-        let mut lines = text.lines().map(str::trim);
-        while let Some(line) = lines.next() {
-            if line != "#[cfg(test)]" {
-                continue;
-            }
-            let Some(next) = lines.next() else { break };
-            let declared = next
-                .strip_prefix("mod ")
-                .and_then(|rest| rest.strip_suffix(';'))
-                .map(str::trim);
-            if let Some(name) = declared {
-                out.push(dir.join(format!("{name}.rs")));
-                out.push(dir.join(name).join("mod.rs"));
-            }
-        }
-    }
-    out
 }
 
 #[test]

@@ -2,6 +2,8 @@
 //! iceoryx2 namespace (own prefix and root) and run directory, and reads back what the run left
 //! behind (ground truth, emulated-Teensy events, supervisor events, recordings).
 
+pub mod sources;
+
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};

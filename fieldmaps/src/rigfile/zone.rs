@@ -2,6 +2,8 @@
 
 use nalgebra::Vector2;
 
+use crate::phantom::closest_point_on_segment;
+
 /// What a zone means to the flow model and the controller (the paper's two regions).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum ZoneKind {
@@ -75,22 +77,6 @@ pub(crate) fn bounds(polygon: &[Vector2<f64>]) -> (Vector2<f64>, Vector2<f64>) {
         hi = hi.sup(v);
     }
     (lo, hi)
-}
-
-/// The point of segment a–b closest to `p` (`a` for a degenerate segment).
-pub(crate) fn closest_point_on_segment(
-    a: &Vector2<f64>,
-    b: &Vector2<f64>,
-    p: &Vector2<f64>,
-) -> Vector2<f64> {
-    let ab = b - a;
-    let len2 = ab.norm_squared();
-    let t = if len2 > 0.0 {
-        ((p - a).dot(&ab) / len2).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    a + ab * t
 }
 
 fn on_segment(a: &Vector2<f64>, b: &Vector2<f64>, p: &Vector2<f64>) -> bool {

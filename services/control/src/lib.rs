@@ -4,8 +4,9 @@
 //! coils; the loop holds the orientation field briefly, then goes safe (zero currents).
 //!
 //! Files by concern: `config` (the `[control]` table), `setup` (its checks and the loop a
-//! scenario describes), `control_loop` (the step as a pipeline of stages), `telemetry` (the
-//! recording and the run logs), `service` (the process).
+//! scenario describes), `control_loop` (the step as a pipeline of stages), `latency` (the
+//! predictors that feed it the state at actuation time), `telemetry` (the recording and the run
+//! logs), `service` (the process).
 
 pub mod coil_gains;
 pub mod config;
@@ -14,8 +15,6 @@ pub mod controllers;
 pub mod latency;
 pub mod observer;
 pub mod operator;
-pub mod predictor;
-pub mod predictor_bank;
 pub mod reference;
 pub mod rig3d;
 pub mod service;

@@ -4,8 +4,6 @@
 
 use std::fmt::Display;
 
-use crate::scenario::ScenarioError;
-
 /// Exit status of a service whose configuration is bad (`EX_CONFIG` of BSD `sysexits.h`),
 /// both for `--check` and at run time.
 pub const EXIT_CONFIG: u8 = 78;
@@ -26,12 +24,6 @@ impl ConfigError {
 
     pub fn message(&self) -> &str {
         &self.message
-    }
-}
-
-impl From<ScenarioError> for ConfigError {
-    fn from(error: ScenarioError) -> Self {
-        Self::new(error.to_string())
     }
 }
 

@@ -13,11 +13,21 @@ use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use shm_schemas::{deadlines, services, FrameHeader, Heartbeat, ServiceId};
 
-use crate::service_loop::{Attachable, Connects};
 use crate::{iox, KitError};
 use iceoryx2::service::builder::publish_subscribe::{
     PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
 };
+
+/// An input a WaitSet can wait on (an `Inbox` or a `FrameInbox`).
+pub trait Attachable: SynchronousMultiplexing + Debug {
+    /// Consumes the pending announcements, so that the WaitSet sleeps again until the next one.
+    fn drain_events(&self);
+}
+
+/// An output whose new subscribers must be connected now and then (`Outbox`, `FrameOutbox`).
+pub trait Connects {
+    fn update_connections(&self);
+}
 
 /// Samples a slow subscriber may queue before the oldest is overwritten (latest wins).
 pub const SUBSCRIBER_BUFFER: usize = 4;

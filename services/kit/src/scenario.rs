@@ -23,6 +23,12 @@ pub enum ScenarioError {
     Invalid { path: PathBuf, message: String },
 }
 
+impl From<ScenarioError> for ConfigError {
+    fn from(error: ScenarioError) -> Self {
+        Self::new(error.to_string())
+    }
+}
+
 /// How the plant advances time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]

@@ -33,6 +33,7 @@ use iceoryx2::waitset::WaitSetRunResult;
 use shm_schemas::deadlines;
 
 use crate::ports::HeartbeatSender;
+pub use crate::ports::{Attachable, Connects};
 use crate::{iox, KitError};
 
 /// Longest a service sleeps in its WaitSet between two wakes when the tick is slower. A
@@ -41,17 +42,6 @@ pub const LONGEST_SLEEP: Duration = Duration::from_millis(100);
 
 /// Most inputs one loop can watch (the wake records them in a bit mask).
 pub const MAX_INPUTS: usize = 32;
-
-/// An input a WaitSet can wait on (an `Inbox` or a `FrameInbox`).
-pub trait Attachable: SynchronousMultiplexing + Debug {
-    /// Consumes the pending announcements, so that the WaitSet sleeps again until the next one.
-    fn drain_events(&self);
-}
-
-/// An output whose new subscribers must be connected now and then (`Outbox`, `FrameOutbox`).
-pub trait Connects {
-    fn update_connections(&self);
-}
 
 /// Which input of a loop, as returned when it was added.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -74,3 +74,45 @@ fn failure(service: ServiceId, error: &anyhow::Error) -> ExitCode {
     eprintln!("millinav-{}: {kind}: {error:#}", service.name());
     ExitCode::from(status)
 }
+
+/// A service's whole `main.rs`: its command line (the kit's [`ServiceArgs`], its doc comment as
+/// the `--help` text) and a `main` that hands the library's `prepare` and `run` to
+/// [`service_main`]. The calling crate depends on `clap` and `shm_schemas`.
+///
+/// ```ignore
+/// millinav_kit::service_binary! {
+///     /// Localizes the capsule in camera frames and publishes its Pose.
+///     name: "millinav-vision",
+///     service: Vision,
+///     library: millinav_vision,
+/// }
+/// ```
+#[macro_export]
+macro_rules! service_binary {
+    (
+        $(#[doc = $doc:expr])*
+        name: $name:literal,
+        service: $service:ident,
+        library: $library:ident
+        $(, after_help: $after_help:expr)?
+        $(,)?
+    ) => {
+        $(#[doc = $doc])*
+        #[derive(clap::Parser)]
+        #[command(name = $name, version $(, after_help = $after_help)?)]
+        struct Args {
+            #[command(flatten)]
+            service: $crate::ServiceArgs,
+        }
+
+        fn main() -> ::std::process::ExitCode {
+            let args = <Args as clap::Parser>::parse();
+            $crate::service_main(
+                ::shm_schemas::ServiceId::$service,
+                &args.service,
+                $library::prepare,
+                $library::run,
+            )
+        }
+    };
+}

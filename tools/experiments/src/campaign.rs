@@ -27,7 +27,7 @@ use sha2::{Digest, Sha256};
 
 use crate::report::{self, Outcome};
 use crate::robustness::{self, Case, CaseOutcome};
-use crate::slurm::SlurmSettings;
+use crate::slurm_settings::SlurmSettings;
 use crate::{
     cell_scenario, fast_run, metrics, process_run_isolated, read_truth, recorded_run, reference_of,
     scenario_document, write_rrd, Cell, Metrics, RunIsolation, TraceRow,

@@ -12,6 +12,7 @@ pub mod report;
 pub mod robustness;
 pub mod runner;
 pub mod slurm;
+pub mod slurm_settings;
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};

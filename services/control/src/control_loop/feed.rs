@@ -5,7 +5,7 @@ use nalgebra::Vector2;
 
 use super::{ControlLoop, StepTiming};
 use crate::latency::Predicted;
-use crate::predictor::Predictor;
+use crate::latency::Predictor;
 
 /// What the controller is fed for one pose.
 pub(super) struct Fed {

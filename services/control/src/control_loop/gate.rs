@@ -5,7 +5,7 @@ use shm_schemas::{services, ControlMode, Pose};
 
 use super::{ControlLoop, Decision, StepTiming, POSE_JUMP_SLACK_M};
 use crate::controllers::ControlTerms;
-use crate::predictor::Predictor;
+use crate::latency::Predictor;
 
 impl ControlLoop {
     /// Why a pose cannot be used at `actuation_ns`, if it cannot.

@@ -18,9 +18,8 @@ use std::collections::VecDeque;
 
 use nalgebra::Vector2;
 
+use super::{LatencyConfig, Predicted, Predictor, StatePredictor, MOTION_SHARE_WINDOW_S};
 use crate::controllers::NominalModel;
-use crate::latency::{LatencyConfig, Predicted, StatePredictor, MOTION_SHARE_WINDOW_S};
-use crate::predictor::Predictor;
 
 /// Averaging time of each candidate's prediction miss: the predictor's own averaging time for
 /// what its model misses (several pulsation periods), so a choice reflects the flow, not one

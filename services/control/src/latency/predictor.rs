@@ -1,12 +1,25 @@
 //! The interface of the latency predictors: the single [`StatePredictor`] and the
 //! [`PredictorBank`] that picks one of several by how well each predicted.
 //!
-//! [`StatePredictor`]: crate::latency::StatePredictor
-//! [`PredictorBank`]: crate::predictor_bank::PredictorBank
+//! [`StatePredictor`]: super::StatePredictor
+//! [`PredictorBank`]: super::PredictorBank
 
 use nalgebra::Vector2;
 
-use crate::latency::{LatencyConfig, Predicted};
+use super::LatencyConfig;
+
+/// What the predictor hands the controller for one pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Predicted {
+    /// The motion the model predicts from the capture time to the actuation time.
+    pub motion_ahead_m: Vector2<f64>,
+    /// The model's velocity at the actuation time.
+    pub velocity_mps: Vector2<f64>,
+    /// Steady disturbance force the predictor attributes to what the nominal model lacks, N.
+    pub disturbance_n: Vector2<f64>,
+    /// Actuation time − capture time, s.
+    pub horizon_s: f64,
+}
 
 /// Predicts the robot's state at a command's actuation time from a delayed pose and the forces
 /// the coils made since.
