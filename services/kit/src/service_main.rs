@@ -79,7 +79,7 @@ fn failure(service: ServiceId, error: &anyhow::Error) -> ExitCode {
 /// the `--help` text) and a `main` that hands the library's `prepare` and `run` to
 /// [`service_main`]. The calling crate depends on `clap` and `shm_schemas`.
 ///
-/// ```ignore
+/// ```text
 /// millinav_kit::service_binary! {
 ///     /// Localizes the capsule in camera frames and publishes its Pose.
 ///     name: "millinav-vision",
