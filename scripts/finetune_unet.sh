@@ -16,15 +16,13 @@
 # INIT: the weights to start from (default tools/unet/model/unet_roi96.npz; a PyTorch .pt
 # state dict of the earlier trainer works too).
 set -euo pipefail
-usage="usage: scripts/finetune_unet.sh LABELS OUT_DIR [--rig RIG] [train.py options]"
+usage="usage: scripts/finetune_unet.sh LABELS OUT_DIR --rig RIG [train.py options]"
 LABELS=${1:?$usage}
 OUT=${2:?$usage}
 shift 2
-RIG_ARGS=()
-if [ "${1:-}" = "--rig" ]; then
-  RIG_ARGS=(--rig "${2:?--rig needs a file}")
-  shift 2
-fi
+[ "${1:-}" = "--rig" ] || { echo "$usage (RIG: the rig file whose camera took the frames)" >&2; exit 2; }
+RIG_ARGS=(--rig "${2:?--rig needs a file}")
+shift 2
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 BIN=${BIN:-${CARGO_TARGET_DIR:-$ROOT/target}/release}
 PYTHON=${PYTHON:-python3}

@@ -9,14 +9,17 @@
 #
 # OUT_DIR gets data/ (the crops), unet_roi96.onnx / .npz (model, weights), unet_roi96_int8.onnx,
 # training_metrics.json and train_log.txt. Evaluate with
-#   vision-eval --model OUT_DIR/unet_roi96_int8.onnx [--robustness]
+#   millinav vision eval --rig RIG --model OUT_DIR/unet_roi96_int8.onnx [--robustness]
 # and copy the models to tools/unet/model/ when they hold up. Sizes: TRAIN_PER crops per
 # randomized generator (4 of them, default 4000), MINUTES of training at most (default 8).
+# RIG: the rig whose camera, phantom and capsule the crops render (default: the paper's rig, whose
+# model tools/unet/model/ holds).
 set -euo pipefail
 OUT=${1:?usage: scripts/train_unet.sh OUT_DIR [train.py options]}
 shift
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 BIN=${BIN:-${CARGO_TARGET_DIR:-$ROOT/target}/release}
+RIG=${RIG:-$ROOT/fieldmaps/rigs/paper.toml}
 PYTHON=${PYTHON:-python3}
 TRAIN_PER=${TRAIN_PER:-4000}
 MINUTES=${MINUTES:-8}
@@ -28,7 +31,7 @@ mkdir -p "$DATA"
 
 echo "== crops (seeds 5000-5302; the committed test set uses 9002, the held-out split 4000)"
 pids=()
-gen() { "$BIN/unet-dataset" "$@" >"$DATA/$(basename "$2").log" 2>&1 & pids+=($!); }
+gen() { "$BIN/unet-dataset" "$@" --rig "$RIG" >"$DATA/$(basename "$2").log" 2>&1 & pids+=($!); }
 gen --out "$DATA/main" --style randomized --train 2000 --val 500 --test 500 --cameras 16 --seed 5000
 for k in 1 2 3 4; do
   gen --out "$DATA/r$k" --style randomized --train "$TRAIN_PER" --val 0 --test 0 --cameras 16 --seed $((5000 + 10 * k))

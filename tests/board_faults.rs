@@ -118,7 +118,7 @@ fn thermal_trip_under_a_long_hold_zeroes_the_coils_and_ends_the_run() {
     let rigs = rigs.display();
     let text = std::fs::read_to_string(fieldmaps::rigfile::paper_rig_path())
         .unwrap()
-        .replace("\"maps:../", &format!("\"maps:{rigs}/../"))
+        .replace("dir = \"../", &format!("dir = \"{rigs}/../"))
         .replace("\"paper/", &format!("\"{rigs}/paper/"))
         .replace("\"../flow/", &format!("\"{rigs}/../flow/"))
         .replace(
@@ -130,8 +130,8 @@ fn thermal_trip_under_a_long_hold_zeroes_the_coils_and_ends_the_run() {
     let rig = dir.join("hot.toml");
     std::fs::write(&rig, text).unwrap();
     let scenario = circle(8.0, "").replacen(
-        "[run]\n",
-        &format!("[run]\nrig = \"{}\"\n", rig.display()),
+        "rig = \"fieldmaps/rigs/paper.toml\"",
+        &format!("rig = \"{}\"", rig.display()),
         1,
     );
     let (run, clean) = run("thermal", &scenario);

@@ -9,9 +9,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use fieldmaps::coils::COIL_COUNT;
-use fieldmaps::phantom::Phantom;
-use fieldmaps::rig::CoilLimits;
+use fieldmaps::rigfile::Rig;
 use millinav_tests::{scenario_text, venv_dir, RunSet};
 use nalgebra::Vector2;
 use serde_json::Value;
@@ -131,7 +129,8 @@ fn a_python_ctypes_reader_decodes_poses_and_commands_of_a_live_run() {
     // Poses: frames in order, flags 0/1, valid positions in the canal and where the twin was.
     let truth_at: HashMap<u64, Vector2<f64>> =
         truth.iter().map(|r| (r.frame_seq, r.position_m)).collect();
-    let phantom = Phantom::default_heart();
+    let rig = Rig::load_paper().unwrap();
+    let canal = &rig.phantom.mask;
     let pose_seqs: Vec<u64> = poses.iter().map(|p| u64_at(p, &["stamp", "seq"])).collect();
     assert!(in_frame_order(&pose_seqs), "pose seqs {pose_seqs:?}");
     let pose_times: Vec<u64> = poses
@@ -159,7 +158,7 @@ fn a_python_ctypes_reader_decodes_poses_and_commands_of_a_live_run() {
         let p = f64s(&pose["position_m"]);
         let p = Vector2::new(p[0], p[1]);
         assert!(p.x.is_finite() && p.y.is_finite());
-        assert!(phantom.contains(&p), "valid pose {p:?} outside the canal");
+        assert!(canal.contains(&p), "valid pose {p:?} outside the canal");
         let heading = pose["heading_rad"].as_f64().expect("heading");
         assert!(heading.is_finite());
         if let Some(t) = truth_at.get(&u64_at(pose, &["stamp", "seq"])) {
@@ -179,8 +178,7 @@ fn a_python_ctypes_reader_decodes_poses_and_commands_of_a_live_run() {
     eprintln!("worst decoded pose vs truth: {:.4} mm", worst_m * 1e3);
     assert!(worst_m <= POSE_TOLERANCE_M, "pose {worst_m} m from truth");
 
-    // Commands: one per pose, the rig's 12 coils, finite currents within the limits.
-    let limits = CoilLimits::default();
+    // Commands: one per pose, every coil of the rig, finite currents within each coil's limit.
     let command_seqs: Vec<u64> = commands
         .iter()
         .map(|c| u64_at(c, &["stamp", "seq"]))
@@ -193,13 +191,14 @@ fn a_python_ctypes_reader_decodes_poses_and_commands_of_a_live_run() {
     let mut tracking = 0;
     let mut command_max: HashMap<u64, f64> = HashMap::new();
     for command in commands {
-        assert_eq!(u64_at(command, &["active_coils"]) as usize, COIL_COUNT);
+        assert_eq!(u64_at(command, &["active_coils"]) as usize, rig.coils.len());
         let currents = f64s(&command["currents_a"]);
-        assert_eq!(currents.len(), COIL_COUNT);
+        assert_eq!(currents.len(), rig.coils.len());
         assert!(
             currents
                 .iter()
-                .all(|c| c.is_finite() && c.abs() <= limits.max_current_a + 1e-9),
+                .zip(&rig.coils)
+                .all(|(c, coil)| c.is_finite() && c.abs() <= coil.max_current_a + 1e-9),
             "currents {currents:?}"
         );
         assert!(f64s(&command["inactive_currents_a"])

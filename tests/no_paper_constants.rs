@@ -1,14 +1,25 @@
-//! No paper constant in a service's code path: every service reads its rig (coils, camera,
-//! phantom, robot, zones, limits) from the scenario's rig file. This greps the services'
-//! sources (outside `#[cfg(test)]` modules) for the names and numbers that used to weld them
-//! to the paper's rig. Defaults that a file overrides live in `fieldmaps` (the paper rig's
-//! path, the parametric phantom used to draw `paper/heart_mask.png`), not in services.
+//! No paper constant in a code path: every crate and tool of the workspace reads its rig (coils,
+//! camera, phantom, robot, zones, limits) from a rig file that a scenario or a `--rig` names.
+//! This greps the sources of every workspace member (outside `#[cfg(test)]` modules, examples
+//! and integration tests, which may use the committed paper rig as their fixture) for the
+//! names and numbers that used to weld them to the paper's rig. The paper's rig is data:
+//! `fieldmaps/rigs/paper.toml` and the phantom file its mask was drawn from.
 
-use millinav_tests::sources::{code_paths, test_module_files, without_comment};
+use millinav_tests::sources::{
+    before_inline_tests, code_paths, test_module_files, without_comment,
+};
+
+/// A pattern that is a crate's own API (the parametric phantom type in `fieldmaps`): not
+/// flagged in that crate's sources.
+const OWN_API: &[(&str, &str)] = &[("Phantom::", "fieldmaps")];
 
 /// Names of the paper's rig in code, and its numbers as they were written there.
 const FORBIDDEN: &[(&str, &str)] = &[
     ("paper_rig()", "the paper's coil layout in code"),
+    ("PaperRigLayout", "the paper's coil layout in code"),
+    ("PAPER_RIG_TURNS", "the paper's turns in code"),
+    ("paper_coil_id", "the paper's coil order in code"),
+    ("load_or_paper", "the paper's rig when none is named"),
     ("default_heart()", "the paper's parametric phantom"),
     (
         "Phantom::",
@@ -26,7 +37,7 @@ const FORBIDDEN: &[(&str, &str)] = &[
     ("CoilLimits::default()", "the paper's coil ratings"),
     ("CapsuleSize::default()", "the paper's capsule size"),
     ("load_default()", "the paper's committed coil maps"),
-    ("load_paper()", "the paper's rig file"),
+    ("::load_paper()", "the paper's rig file"),
     ("1020", "the paper camera's 1020 px"),
     ("92.0", "the paper camera's 92 mm"),
     ("7.4e-3", "the paper capsule's length"),
@@ -36,27 +47,26 @@ const FORBIDDEN: &[(&str, &str)] = &[
 ];
 
 #[test]
-fn services_name_no_paper_constant() {
-    let services = fieldmaps::data_root().join("services");
+fn code_paths_name_no_paper_constant() {
+    let root = fieldmaps::data_root();
     let mut files = Vec::new();
-    for entry in std::fs::read_dir(&services).expect("services/").flatten() {
+    for krate in workspace_crates(&root) {
         // Unit tests may use the committed paper rig as their fixture.
-        files.extend(code_paths(&entry.path().join("src")));
+        files.extend(code_paths(&krate.join("src")));
     }
-    assert!(
-        files.len() > 20,
-        "found only {} service sources",
-        files.len()
-    );
+    assert!(files.len() > 100, "found only {} sources", files.len());
     let mut hits = Vec::new();
     for (file, code) in &files {
         for (line_no, line) in code.lines().enumerate() {
             let line = without_comment(line);
             for (pattern, what) in FORBIDDEN {
-                if names(line, pattern) {
+                let own = OWN_API
+                    .iter()
+                    .any(|(p, home)| p == pattern && file.starts_with(root.join(home)));
+                if !own && names(line, pattern) {
                     hits.push(format!(
                         "{}:{}: `{pattern}` ({what})",
-                        file.strip_prefix(&services).unwrap_or(file).display(),
+                        file.strip_prefix(&root).unwrap_or(file).display(),
                         line_no + 1
                     ));
                 }
@@ -65,9 +75,28 @@ fn services_name_no_paper_constant() {
     }
     assert!(
         hits.is_empty(),
-        "services name the paper's rig; the rig file should say it:\n{}",
+        "code paths name the paper's rig; the rig file should say it:\n{}",
         hits.join("\n")
     );
+}
+
+/// Every member of the workspace, from the root manifest (a new crate is scanned without
+/// anyone remembering to add it here).
+fn workspace_crates(root: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let text = std::fs::read_to_string(root.join("Cargo.toml")).expect("Cargo.toml");
+    let manifest: toml::Table = text.parse().expect("Cargo.toml parses");
+    let members = manifest["workspace"]["members"]
+        .as_array()
+        .expect("workspace.members");
+    let crates: Vec<_> = members
+        .iter()
+        .map(|m| root.join(m.as_str().expect("member path")))
+        .collect();
+    assert!(
+        crates.iter().any(|c| c.ends_with("tools/bench")) && crates.len() > 15,
+        "{crates:?}"
+    );
+    crates
 }
 
 #[test]
@@ -78,6 +107,17 @@ fn test_modules_in_files_of_their_own_are_recognised() {
         found.iter().any(|f| f.ends_with("control_loop/tests.rs")),
         "{found:?}"
     );
+}
+
+#[test]
+fn inline_test_modules_end_the_code_path_whatever_their_visibility() {
+    for header in ["mod tests {", "pub(crate) mod tests {", "pub mod tests {"] {
+        let text = format!("fn a() {{}}\n#[cfg(test)]\n{header}\n    const W: u32 = 1020;\n}}\n");
+        assert_eq!(before_inline_tests(&text), "fn a() {}\n", "{header}");
+    }
+    // A declaration does not end it.
+    let text = "#[cfg(test)]\npub(crate) mod tests;\nconst W: u32 = 1020;\n";
+    assert_eq!(before_inline_tests(text), text);
 }
 
 #[test]

@@ -1,6 +1,6 @@
 //! Coil calibration: corrections fitted to gaussmeter measurements (`fieldgen fit-coils`) and
 //! applied on top of a base field model (analytic or maps). A rig file selects it with
-//! `field_model = "maps:<dir> + calibration:<file>"`.
+//! `field_model = { kind = "maps", dir = "<dir>", calibration = "<file>" }`.
 //!
 //! Model, per coil k with base field B̃_k(p) and gradient G̃_k(p) per ampere:
 //! - `gain`:   B_k = g_k · B̃_k,  G_k = g_k · G̃_k (winding turns, core permeability, driver gain);

@@ -1,5 +1,6 @@
-//! The 12-coil electromagnet: geometry, closed-form Biot–Savart field and gradient, and the
-//! calibration of the model against the paper's FEA numbers.
+//! A rig's electromagnet: coil geometry, closed-form Biot–Savart field and gradient, and the
+//! comparison of a coil model with a field the rig is known to make (a rig file's
+//! `[[electromagnet.reference_fields]]`).
 //!
 //! Each coil is a set of coaxial circular filaments ("loops") that sample the winding's
 //! rectangular cross-section; every loop carries `turns_per_loop` turns. A loop's field is the
@@ -11,22 +12,15 @@ use nalgebra::{Matrix3, Unit, Vector3};
 use thiserror::Error;
 
 use crate::elliptic::{loop_local_with_gradient, loop_q_bz};
-use crate::rig::{CoilLimits, RigError};
+use crate::rig::RigError;
 
-/// Number of coils in the paper's rig.
-pub const COIL_COUNT: usize = 12;
-
-/// Errors from coil-system queries and calibration.
+/// Errors from coil-system queries.
 #[derive(Debug, Error)]
 pub enum CoilError {
     #[error("coil index {index} out of range (system has {count} coils)")]
     BadIndex { index: usize, count: usize },
     #[error("expected {expected} currents, got {got}")]
     CurrentCount { expected: usize, got: usize },
-    #[error("invalid coil layout: {0}")]
-    InvalidLayout(&'static str),
-    #[error("calibration failed: {0}")]
-    Calibration(&'static str),
     #[error(transparent)]
     Rig(#[from] RigError),
 }
@@ -38,7 +32,7 @@ pub struct Coil {
     /// Centre of the winding (mid-plane of its axial extent), m.
     pub center_m: Vector3<f64>,
     /// Positive current circulates right-handed about `axis`, so the field at the coil centre
-    /// points along `axis`. In the paper rig the axes point at the workspace centre.
+    /// points along `axis`.
     pub axis: Unit<Vector3<f64>>,
     /// (radius m, axial offset m) of each filament.
     pub loops: Vec<(f64, f64)>,
@@ -70,7 +64,7 @@ impl Coil {
         let (ri, ro) = (winding.inner_radius_m, winding.outer_radius_m);
         let mut loops = Vec::with_capacity(nr * na);
         for a in 0..na {
-            // Positive offset = along the axis (toward the workspace in the paper rig).
+            // Positive offset = along the axis.
             let offset = winding.length_m * ((a as f64 + 0.5) / na as f64 - 0.5);
             for r in 0..nr {
                 loops.push((ri + (ro - ri) * (r as f64 + 0.5) / nr as f64, offset));
@@ -144,32 +138,6 @@ impl Coil {
     }
 }
 
-/// Which unit (side of the workspace) a paper-rig coil belongs to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum CoilUnit {
-    /// +y side
-    North = 0,
-    /// +x side
-    East = 1,
-    /// −y side
-    South = 2,
-    /// −x side
-    West = 3,
-}
-
-/// Which of a unit's three concentric coils.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum CoilSize {
-    Small = 0,
-    Mid = 1,
-    Large = 2,
-}
-
-/// Index of a coil in [`CoilSystem::paper_rig`] (unit-major: N_small, N_mid, N_large, E_small, …).
-pub const fn paper_coil_id(unit: CoilUnit, size: CoilSize) -> usize {
-    3 * unit as usize + size as usize
-}
-
 /// A set of independently driven coils.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CoilSystem {
@@ -177,12 +145,6 @@ pub struct CoilSystem {
 }
 
 impl CoilSystem {
-    /// The paper's 12-coil rig with the calibrated turn counts ([`PAPER_RIG_TURNS`]) and the
-    /// default [`PaperRigLayout`] (see there for the geometry).
-    pub fn paper_rig() -> Self {
-        PaperRigLayout::default().build_unchecked(PAPER_RIG_TURNS)
-    }
-
     pub fn len(&self) -> usize {
         self.coils.len()
     }
@@ -369,251 +331,66 @@ impl CoilField for CoilSystem {
     }
 }
 
-/// Geometry of the paper rig (the paper gives only "12 planar coils, 4 units of 3 concentric
-/// coils, axes in the x–y plane, around a 10×10×10 cm workspace"; the rest is our choice).
-///
-/// - Workspace: cube of half-size 50 mm centred at the origin; z = 0 is the control plane.
-/// - Units: North (+y), East (+x), South (−y), West (−x). Each unit's three coils are coplanar
-///   and concentric, axis through the origin pointing at the workspace centre, centred at z = 0.
-/// - Windings: annuli (inner..outer radius) of axial depth `winding_depth_m`, with the face
-///   nearest the workspace at `face_distance_m` from the centre. Defaults: small 10–24 mm,
-///   mid 27–41 mm, large 44–58 mm (3 mm formers between), depth 20 mm, face at 60 mm (10 mm
-///   clearance to the workspace). Large outer radius 58 mm < 60 mm face distance, so adjacent
-///   units do not intersect at the corners.
-/// - Each winding is sampled by `radial_filaments × axial_filaments` filaments at the cell
-///   midpoints of its cross-section.
+/// A field the rig's coils are known to make: a gaussmeter reading or an FEA result for one
+/// pattern of currents (a rig file's `[[electromagnet.reference_fields]]`).
 #[derive(Debug, Clone, PartialEq)]
-pub struct PaperRigLayout {
-    pub workspace_half_m: f64,
-    pub face_distance_m: f64,
-    pub winding_depth_m: f64,
-    /// (inner, outer) radius of the small, mid and large windings, m.
-    pub winding_radii_m: [(f64, f64); 3],
-    pub radial_filaments: usize,
-    pub axial_filaments: usize,
+pub struct ReferenceField {
+    /// Where the numbers come from (free text).
+    pub source: String,
+    /// (coil index, current A) of every driven coil; the others carry none.
+    pub currents_a: Vec<(usize, f64)>,
+    /// Where the field was measured, m.
+    pub point_m: Vector3<f64>,
+    /// The direction of the gradient, ∂|B|/∂s along it.
+    pub direction: Unit<Vector3<f64>>,
+    /// |B| there, T.
+    pub field_t: f64,
+    /// ∂|B|/∂s there, T/m, when known.
+    pub gradient_t_per_m: Option<f64>,
 }
 
-impl Default for PaperRigLayout {
-    fn default() -> Self {
-        Self {
-            workspace_half_m: 0.050,
-            face_distance_m: 0.060,
-            winding_depth_m: 0.020,
-            winding_radii_m: [(0.010, 0.024), (0.027, 0.041), (0.044, 0.058)],
-            radial_filaments: 4,
-            axial_filaments: 4,
-        }
-    }
+/// |B| and ∂|B|/∂s of a coil model at a reference field's point and currents.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FieldReading {
+    /// |B|, T.
+    pub field_t: f64,
+    /// ∂|B|/∂s along the reference's direction, T/m (the quantity that pushes a magnet aligned
+    /// with B along that direction).
+    pub gradient_t_per_m: f64,
 }
 
-/// Turns of the (small, mid, large) coils, from [`calibrate_paper_rig`] with the default layout
-/// and limits (re-derived in the tests). Mid is the mean of small and large: the paper's FEA
-/// case does not involve it.
-pub const PAPER_RIG_TURNS: [f64; 3] = [214.578, 191.788, 168.999];
-
-const UNIT_NAMES: [&str; 4] = ["N", "E", "S", "W"];
-const SIZE_NAMES: [&str; 3] = ["small", "mid", "large"];
-
-impl PaperRigLayout {
-    /// Unit vector from the workspace centre toward unit `u` (0..4 = N, E, S, W).
-    fn outward(u: usize) -> Vector3<f64> {
-        match u {
-            0 => Vector3::y(),
-            1 => Vector3::x(),
-            2 => -Vector3::y(),
-            _ => -Vector3::x(),
-        }
-    }
-
-    pub fn validate(&self) -> Result<(), CoilError> {
-        let pos = |v: f64| v.is_finite() && v > 0.0;
-        if !pos(self.workspace_half_m) || !pos(self.winding_depth_m) {
-            return Err(CoilError::InvalidLayout(
-                "workspace and depth must be finite and > 0",
-            ));
-        }
-        if !(self.face_distance_m.is_finite() && self.face_distance_m > self.workspace_half_m) {
-            return Err(CoilError::InvalidLayout(
-                "coil faces must lie outside the workspace",
-            ));
-        }
-        if self
-            .winding_radii_m
-            .iter()
-            .any(|&(ri, ro)| !(pos(ri) && ro.is_finite() && ro > ri))
-        {
-            return Err(CoilError::InvalidLayout(
-                "winding radii must satisfy 0 < inner < outer",
-            ));
-        }
-        if !(1..=64).contains(&self.radial_filaments) || !(1..=64).contains(&self.axial_filaments) {
-            return Err(CoilError::InvalidLayout(
-                "filaments per direction must be in 1..=64",
-            ));
-        }
-        Ok(())
-    }
-
-    /// Build the 12 coils with `turns` = total turns of the (small, mid, large) windings.
-    pub fn build(&self, turns: [f64; 3]) -> Result<CoilSystem, CoilError> {
-        self.validate()?;
-        if turns.iter().any(|t| !(t.is_finite() && *t > 0.0)) {
-            return Err(CoilError::InvalidLayout("turns must be finite and > 0"));
-        }
-        Ok(self.build_unchecked(turns))
-    }
-
-    fn build_unchecked(&self, turns: [f64; 3]) -> CoilSystem {
-        let (nr, na) = (self.radial_filaments, self.axial_filaments);
-        let mut coils = Vec::with_capacity(COIL_COUNT);
-        for (u, unit_name) in UNIT_NAMES.iter().enumerate() {
-            let out = Self::outward(u);
-            let center_m = out * (self.face_distance_m + 0.5 * self.winding_depth_m);
-            let axis = Unit::new_unchecked(-out);
-            for (s, size_name) in SIZE_NAMES.iter().enumerate() {
-                let (ri, ro) = self.winding_radii_m[s];
-                let winding = Winding {
-                    inner_radius_m: ri,
-                    outer_radius_m: ro,
-                    length_m: self.winding_depth_m,
-                    radial_filaments: nr,
-                    axial_filaments: na,
-                };
-                coils.push(Coil::from_winding(
-                    format!("{unit_name}_{size_name}"),
-                    center_m,
-                    axis,
-                    &winding,
-                    turns[s],
-                ));
+impl ReferenceField {
+    /// The full current vector of a rig with `coil_count` coils.
+    pub fn currents(&self, coil_count: usize) -> Vec<f64> {
+        let mut currents = vec![0.0; coil_count];
+        for &(coil, amps) in &self.currents_a {
+            if let Some(c) = currents.get_mut(coil) {
+                *c = amps;
             }
         }
-        CoilSystem { coils }
+        currents
     }
 
-    /// Where the paper's FEA numbers are compared with the model: on the north axis, at the
-    /// workspace face nearest the north unit, in the control plane: (0, +50 mm, 0).
-    /// On the axis |B| grows monotonically toward the coils, so this is the peak of |B| inside
-    /// the workspace (checked by a test over the whole control-plane square).
-    pub fn calibration_point(&self) -> Vector3<f64> {
-        Vector3::new(0.0, self.workspace_half_m, 0.0)
-    }
-}
-
-/// Paper (FEA): large + small north coils at 0.36 kW each give a 24.05 mT peak field ...
-pub const PAPER_PEAK_FIELD_T: f64 = 24.05e-3;
-/// ... and a 13.92 mT/cm gradient.
-pub const PAPER_GRADIENT_T_PER_M: f64 = 1.392;
-/// Power per coil in that FEA case, W.
-pub const PAPER_CALIBRATION_POWER_W: f64 = 360.0;
-/// The coils driven in that FEA case.
-pub const PAPER_CALIBRATION_COILS: [usize; 2] = [
-    paper_coil_id(CoilUnit::North, CoilSize::Small),
-    paper_coil_id(CoilUnit::North, CoilSize::Large),
-];
-
-/// A field/gradient measurement of a coil pattern at one point.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Calibration {
-    /// |B| at `point_m`, T.
-    pub peak_field_t: f64,
-    /// ∂|B|/∂s along `direction` at `point_m`, T/m (the quantity that pushes a magnet aligned
-    /// with B along `direction`).
-    pub gradient_t_per_m: f64,
-    pub point_m: Vector3<f64>,
-    pub direction: Unit<Vector3<f64>>,
-    /// Current in each driven coil, A.
-    pub current_a: f64,
-    pub coil_ids: Vec<usize>,
-}
-
-impl Calibration {
-    /// Drive `coil_ids` with `current_a` each and measure |B| and ∂|B|/∂s at `point_m`.
-    pub fn measure(
-        system: &CoilSystem,
-        coil_ids: &[usize],
-        current_a: f64,
-        point_m: &Vector3<f64>,
-        direction: &Unit<Vector3<f64>>,
-    ) -> Result<Self, CoilError> {
-        system.check_ids(coil_ids)?;
-        let mut currents = vec![0.0; system.len()];
-        for &i in coil_ids {
-            currents[i] = current_a;
-        }
-        let (b, g) = system.field_and_gradient(&currents, point_m);
-        let dir_derivative = g * direction.into_inner();
+    /// What a model gives at the point: `b` and `g` are its superposed field (T) and gradient
+    /// (T/m) for [`Self::currents`] there.
+    pub fn reading(&self, b: &Vector3<f64>, g: &Matrix3<f64>) -> FieldReading {
+        let dir_derivative = g * self.direction.into_inner();
         // d|B|/ds = B̂ · (∂B/∂s); if B vanishes, |∂B/∂s| is the one-sided rate.
         let gradient = match b.try_normalize(0.0) {
             Some(bh) => bh.dot(&dir_derivative),
             None => dir_derivative.norm(),
         };
-        Ok(Self {
-            peak_field_t: b.norm(),
+        FieldReading {
+            field_t: b.norm(),
             gradient_t_per_m: gradient,
-            point_m: *point_m,
-            direction: *direction,
-            current_a,
-            coil_ids: coil_ids.to_vec(),
-        })
+        }
     }
-}
 
-/// Result of [`calibrate_paper_rig`].
-#[derive(Debug, Clone, PartialEq)]
-pub struct PaperRigCalibration {
-    /// Total turns of the (small, mid, large) windings.
-    pub turns: [f64; 3],
-    /// The paper FEA case re-measured on the calibrated model.
-    pub calibration: Calibration,
-    pub system: CoilSystem,
-}
-
-/// Fit the turn counts so the model reproduces the paper's FEA case.
-///
-/// Large + small north coils, each at I = sqrt(0.36 kW / R) (6 A with the default 10 Ω), must
-/// give |B| = 24.05 mT and ∂|B|/∂y = 13.92 mT/cm at [`PaperRigLayout::calibration_point`].
-/// Both are linear in the turns and on the axis the two coils' fields are parallel, so this is
-/// a 2×2 linear solve for (N_small, N_large); N_mid = (N_small + N_large)/2.
-pub fn calibrate_paper_rig(
-    layout: &PaperRigLayout,
-    limits: &CoilLimits,
-) -> Result<PaperRigCalibration, CoilError> {
-    layout.validate()?;
-    let current = limits.current_for_power(PAPER_CALIBRATION_POWER_W)?;
-    let unit_turns = layout.build_unchecked([1.0; 3]);
-    let p = layout.calibration_point();
-    let dir = Unit::new_unchecked(Vector3::y());
-    let [small, large] = PAPER_CALIBRATION_COILS;
-    let n = unit_turns.coils[small].axis.into_inner();
-    // Per turn and per ampere: field along the axis and its y-derivative.
-    let per_turn = |coil: usize| {
-        let (b, g) = unit_turns.field_and_gradient_per_amp(coil, &p);
-        (b.dot(&n), n.dot(&(g * dir.into_inner())))
-    };
-    let (bs, gs) = per_turn(small);
-    let (bl, gl) = per_turn(large);
-    let det = bs * gl - bl * gs;
-    if !(det.is_finite() && det.abs() > 1e-30) {
-        return Err(CoilError::Calibration("field/gradient system is singular"));
+    /// [`Self::reading`] of `model` at the reference's point and currents.
+    pub fn measure(&self, model: &dyn CoilField) -> FieldReading {
+        let (b, g) = model.field_and_gradient(&self.currents(model.coil_count()), &self.point_m);
+        self.reading(&b, &g)
     }
-    let rb = PAPER_PEAK_FIELD_T / current;
-    let rg = PAPER_GRADIENT_T_PER_M / current;
-    let n_small = (rb * gl - bl * rg) / det;
-    let n_large = (bs * rg - rb * gs) / det;
-    if !(n_small > 0.0 && n_large > 0.0) {
-        return Err(CoilError::Calibration(
-            "layout cannot reach the paper's field/gradient ratio with positive turns",
-        ));
-    }
-    let turns = [n_small, 0.5 * (n_small + n_large), n_large];
-    let system = layout.build(turns)?;
-    let calibration = Calibration::measure(&system, &PAPER_CALIBRATION_COILS, current, &p, &dir)?;
-    Ok(PaperRigCalibration {
-        turns,
-        calibration,
-        system,
-    })
 }
 
 #[cfg(test)]
@@ -701,9 +478,55 @@ mod tests {
         }
     }
 
+    /// Three windings of different sizes at generic places and tilts around the workspace (not
+    /// any rig's: the physics must hold for every layout).
+    fn test_system() -> CoilSystem {
+        let winding = |inner_radius_m, outer_radius_m| Winding {
+            inner_radius_m,
+            outer_radius_m,
+            length_m: 0.015,
+            radial_filaments: 3,
+            axial_filaments: 2,
+        };
+        let coil = |name: &str, center: [f64; 3], axis: [f64; 3], w: Winding, turns| {
+            Coil::from_winding(
+                name.into(),
+                Vector3::from(center),
+                Unit::new_normalize(Vector3::from(axis)),
+                &w,
+                turns,
+            )
+        };
+        CoilSystem {
+            coils: vec![
+                coil(
+                    "a",
+                    [0.0, 0.08, 0.0],
+                    [0.0, -1.0, 0.0],
+                    winding(0.01, 0.024),
+                    200.0,
+                ),
+                coil(
+                    "b",
+                    [0.075, -0.025, 0.01],
+                    [-1.0, 0.3, -0.1],
+                    winding(0.02, 0.035),
+                    150.0,
+                ),
+                coil(
+                    "c",
+                    [-0.06, -0.06, 0.0],
+                    [1.0, 1.0, 0.0],
+                    winding(0.04, 0.05),
+                    120.0,
+                ),
+            ],
+        }
+    }
+
     #[test]
-    fn paper_rig_matches_brute_force() {
-        let sys = CoilSystem::paper_rig();
+    fn windings_match_brute_force() {
+        let sys = test_system();
         let p = Vector3::new(0.013, 0.021, 0.004);
         for c in &sys.coils {
             let b = c.field_per_amp(&p);
@@ -724,7 +547,7 @@ mod tests {
 
     #[test]
     fn gradient_is_divergence_and_curl_free() {
-        let sys = CoilSystem::paper_rig();
+        let sys = test_system();
         for p in sample_points() {
             for i in 0..sys.len() {
                 let g = sys.gradient_per_amp(i, &p);
@@ -741,7 +564,7 @@ mod tests {
 
     #[test]
     fn gradient_matches_3d_differences_of_field() {
-        let sys = CoilSystem::paper_rig();
+        let sys = test_system();
         let h = 1e-5;
         for p in sample_points().into_iter().step_by(3) {
             for i in 0..sys.len() {
@@ -761,7 +584,7 @@ mod tests {
 
     #[test]
     fn finite_at_wires_and_axes() {
-        let sys = CoilSystem::paper_rig();
+        let sys = test_system();
         for c in &sys.coils {
             for &(a, off) in &c.loops {
                 let n = c.axis.into_inner();
@@ -781,35 +604,28 @@ mod tests {
     }
 
     #[test]
-    fn layout_and_signs() {
-        let sys = CoilSystem::paper_rig();
-        assert_eq!(sys.len(), COIL_COUNT);
-        let names: Vec<&str> = sys.coils.iter().map(|c| c.name.as_str()).collect();
-        assert_eq!(&names[..4], &["N_small", "N_mid", "N_large", "E_small"]);
-        assert_eq!(names[11], "W_large");
-        // Positive current: field at the centre points along the axis, i.e. away from the unit.
+    fn signs_and_indices() {
+        let sys = test_system();
+        // Positive current: the field at a coil's centre points along its axis.
+        for (i, c) in sys.coils.iter().enumerate() {
+            let b = sys.field_per_amp(i, &c.center_m);
+            assert!(b.normalize().dot(&c.axis) > 1.0 - 1e-12, "{}", c.name);
+        }
         let o = Vector3::zeros();
-        let b_n = sys.field_per_amp(paper_coil_id(CoilUnit::North, CoilSize::Small), &o);
-        let b_e = sys.field_per_amp(paper_coil_id(CoilUnit::East, CoilSize::Large), &o);
-        assert!(b_n.y < 0.0 && b_n.x.abs() < 1e-15 * b_n.norm());
-        assert!(b_e.x < 0.0 && b_e.y.abs() < 1e-15 * b_e.norm());
-        // 4-fold symmetry: south small at the origin mirrors north small.
-        let b_s = sys.field_per_amp(paper_coil_id(CoilUnit::South, CoilSize::Small), &o);
-        assert!((b_s + b_n).norm() < 1e-12 * b_n.norm());
         assert_eq!(sys.field_per_amp(99, &o), Vector3::zeros());
-        assert!(sys.check_ids(&[0, 11]).is_ok());
+        assert!(sys.check_ids(&[0, 2]).is_ok());
         assert!(matches!(
-            sys.check_ids(&[3, 12]),
-            Err(CoilError::BadIndex { index: 12, .. })
+            sys.check_ids(&[1, 3]),
+            Err(CoilError::BadIndex { index: 3, .. })
         ));
-        assert!(sys.try_field_and_gradient(&[1.0; 3], &o).is_err());
+        assert!(sys.try_field_and_gradient(&[1.0; 2], &o).is_err());
     }
 
     #[test]
     fn superposition() {
-        let sys = CoilSystem::paper_rig();
+        let sys = test_system();
         let p = Vector3::new(0.01, -0.02, 0.003);
-        let currents: Vec<f64> = (0..12).map(|i| (i as f64 - 5.5) * 0.4).collect();
+        let currents: Vec<f64> = (0..sys.len()).map(|i| (i as f64 - 1.2) * 0.4).collect();
         let (b, g) = sys.try_field_and_gradient(&currents, &p).unwrap();
         let mut b2 = Vector3::zeros();
         let mut g2 = Matrix3::zeros();
@@ -823,81 +639,30 @@ mod tests {
     }
 
     #[test]
-    fn calibration_reproduces_paper_numbers() {
-        let layout = PaperRigLayout::default();
-        let limits = CoilLimits::default();
-        let cal = calibrate_paper_rig(&layout, &limits).unwrap();
-        println!("calibrated turns (small, mid, large): {:?}", cal.turns);
-        println!("calibration: {:?}", cal.calibration);
-        for (t, hard) in cal.turns.iter().zip(PAPER_RIG_TURNS) {
-            assert!(
-                (t / hard - 1.0).abs() < 0.01,
-                "turns {t} vs hard-coded {hard}"
-            );
-        }
-        // The hard-coded rig itself, measured the paper's way.
-        let sys = CoilSystem::paper_rig();
-        let current = limits.current_for_power(PAPER_CALIBRATION_POWER_W).unwrap();
-        assert!((current - 6.0).abs() < 1e-12);
-        let m = Calibration::measure(
-            &sys,
-            &PAPER_CALIBRATION_COILS,
-            current,
-            &layout.calibration_point(),
-            &Unit::new_unchecked(Vector3::y()),
-        )
-        .unwrap();
-        println!("paper_rig(): {m:?}");
-        assert!((m.peak_field_t / PAPER_PEAK_FIELD_T - 1.0).abs() < 0.01);
-        assert!((m.gradient_t_per_m / PAPER_GRADIENT_T_PER_M - 1.0).abs() < 0.01);
-    }
-
-    #[test]
-    fn calibration_point_is_the_workspace_peak() {
-        // Max of |B| over the control-plane workspace square (1 mm grid) for the FEA pattern.
-        let layout = PaperRigLayout::default();
-        let sys = CoilSystem::paper_rig();
-        let mut currents = [0.0; COIL_COUNT];
-        for i in PAPER_CALIBRATION_COILS {
-            currents[i] = 6.0;
-        }
-        let at_point = sys.field(&currents, &layout.calibration_point()).norm();
-        let mut best = (0.0, Vector3::zeros());
-        for ix in -50..=50 {
-            for iy in -50..=50 {
-                let p = Vector3::new(ix as f64, iy as f64, 0.0) * 1e-3;
-                let b = sys.field(&currents, &p).norm();
-                if b > best.0 {
-                    best = (b, p);
-                }
-            }
-        }
-        println!("peak |B| on the plane: {best:?}, at calibration point {at_point}");
-        assert!((at_point / PAPER_PEAK_FIELD_T - 1.0).abs() < 0.01);
-        assert!(best.0 <= at_point * (1.0 + 1e-9), "{best:?}");
-        let centre = sys.field_and_gradient(&currents, &Vector3::zeros());
-        println!(
-            "at centre: |B| = {} T, dBy/dy = {} T/m",
-            centre.0.norm(),
-            centre.1[(1, 1)]
+    fn a_reference_field_reads_the_closed_form_on_a_loop_axis() {
+        // One loop, 2 A: on its axis |B| = μ0 I r² / (2 (r² + z²)^(3/2)) and
+        // d|B|/dz = −3 μ0 I r² z / (2 (r² + z²)^(5/2)).
+        let (r, z, amps) = (0.03, 0.02, 2.0);
+        let sys = CoilSystem {
+            coils: vec![single_loop(r, Vector3::zeros(), Vector3::z())],
+        };
+        let reference = ReferenceField {
+            source: "closed form".into(),
+            currents_a: vec![(0, amps), (5, 1.0)],
+            point_m: Vector3::new(0.0, 0.0, z),
+            direction: Unit::new_unchecked(Vector3::z()),
+            field_t: 0.0,
+            gradient_t_per_m: None,
+        };
+        assert_eq!(reference.currents(1), [amps]);
+        let read = reference.measure(&sys);
+        let q = r * r + z * z;
+        let field = MU0 * amps * r * r / (2.0 * q.powf(1.5));
+        let gradient = -3.0 * MU0 * amps * r * r * z / (2.0 * q.powf(2.5));
+        assert!((read.field_t / field - 1.0).abs() < 1e-12, "{read:?}");
+        assert!(
+            (read.gradient_t_per_m / gradient - 1.0).abs() < 1e-6,
+            "{read:?}"
         );
-    }
-
-    #[test]
-    fn bad_layouts_are_rejected() {
-        let mut l = PaperRigLayout {
-            face_distance_m: 0.04,
-            ..Default::default()
-        };
-        assert!(l.build([1.0; 3]).is_err());
-        l.face_distance_m = 0.06;
-        assert!(l.build([1.0, -1.0, 1.0]).is_err());
-        l.winding_radii_m[1] = (0.03, 0.02);
-        assert!(calibrate_paper_rig(&l, &CoilLimits::default()).is_err());
-        let bad_limits = CoilLimits {
-            coil_resistance_ohm: 0.0,
-            ..Default::default()
-        };
-        assert!(calibrate_paper_rig(&PaperRigLayout::default(), &bad_limits).is_err());
     }
 }

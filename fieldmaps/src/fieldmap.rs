@@ -407,16 +407,6 @@ impl CoilFieldMaps {
         Self::from_parts(grid, coils, data)
     }
 
-    /// The committed maps of the paper rig: `fieldmaps/coils/` under [`crate::data_root`].
-    pub fn default_dir() -> PathBuf {
-        crate::data_root().join("fieldmaps/coils")
-    }
-
-    /// [`Self::load`] of [`Self::default_dir`].
-    pub fn load_default() -> Result<Self, FieldMapError> {
-        Self::load(&Self::default_dir())
-    }
-
     /// Load `dir/coils.toml` and the data files it lists, checking labels (format, version,
     /// dtype, units, components, names), sizes, grid agreement, finiteness and checksums.
     pub fn load(dir: &Path) -> Result<Self, FieldMapError> {

@@ -4,9 +4,9 @@
 //! Units: SI everywhere inside (m, s, A, T, N, Pa·s, kg). Millimetres appear only in names that
 //! say so (`_mm`) at user-facing edges (camera geometry, configs).
 //!
-//! - [`rig`]: robot, fluid and coil-driver parameters (paper / `RIG.md` defaults, TOML-loadable).
+//! - [`rig`]: robot, fluid and coil-driver parameters (a rig file gives them).
 //! - [`physics`]: magnetic force/torque on a dipole, viscous drag, damping coefficient.
-//! - [`coils`]: the 12-coil electromagnet (closed-form Biot–Savart), calibrated to the paper's FEA.
+//! - [`coils`]: a rig's electromagnet (closed-form Biot–Savart) and its reference fields.
 //! - [`fieldmap`]: current-normalized coil field maps on a 3D grid (file format, checked
 //!   loading, trilinear interpolation); a drop-in [`coils::CoilField`] for the direct model.
 //! - [`calibration`]: per-coil gain / 3 × 3 corrections and a background field fitted to
@@ -15,7 +15,7 @@
 //!   constrained (QP/SOCP, Clarabel) allocation that respects both limits.
 //! - [`lens`]: a real camera's lens (pinhole + plumb_bob) and registration: raw pixel ↔ world,
 //!   the rectification map, and the twin's raw view.
-//! - [`phantom`]: parametric top-view heart phantom (signed distance field, raster mask).
+//! - [`phantom`]: parametric top-view phantoms from a file (signed distance field, raster mask).
 //! - [`rigfile`]: the rig as data: a TOML rig file (coils, camera, phantom, robot), its loader
 //!   and validation (`fieldmaps/rigs/FORMAT.md`).
 

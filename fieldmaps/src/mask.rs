@@ -377,13 +377,13 @@ mod tests {
 
     #[test]
     fn phantom_mask_round_trips_through_png() {
-        let g = ImageGeometry::default();
-        let mask = CanalMask::from_phantom(&Phantom::default_heart(), &g).unwrap();
+        let g = crate::phantom::tests::geom();
+        let mask = CanalMask::from_phantom(&crate::phantom::tests::heart(), &g).unwrap();
         let path = tmp("roundtrip.png");
         mask.save_png(&path).unwrap();
         let back = CanalMask::load_png(&path, &g).unwrap();
         assert_eq!(back, mask);
-        let ph = Phantom::default_heart();
+        let ph = crate::phantom::tests::heart();
         assert!(back.contains(&ph.default_start()));
         assert!(!back.contains(&Vector2::new(0.045, -0.045)));
         assert!(!back.contains(&Vector2::new(f64::NAN, 0.0)));
@@ -419,7 +419,7 @@ mod tests {
 
     #[test]
     fn clear_errors() {
-        let g = ImageGeometry::default();
+        let g = crate::phantom::tests::geom();
         let missing = CanalMask::load_png(Path::new("/nonexistent/mask.png"), &g).unwrap_err();
         assert!(matches!(missing, MaskError::Io { .. }), "{missing}");
 
@@ -473,8 +473,8 @@ mod tests {
 
     #[test]
     fn clearance_matches_the_phantom_sdf() {
-        let g = ImageGeometry::default();
-        let ph = Phantom::default_heart();
+        let g = crate::phantom::tests::geom();
+        let ph = crate::phantom::tests::heart();
         let mask = CanalMask::from_phantom(&ph, &g).unwrap();
         let clear = mask.clearance_map();
         let px = g.mm_per_px * 1e-3;

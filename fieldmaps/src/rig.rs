@@ -14,10 +14,6 @@ pub enum RigError {
         field: &'static str,
         reason: &'static str,
     },
-    #[error("cannot parse rig config: {0}")]
-    Parse(#[from] toml::de::Error),
-    #[error("cannot serialize rig config: {0}")]
-    Serialize(#[from] toml::ser::Error),
 }
 
 fn require_positive(field: &'static str, v: f64) -> Result<(), RigError> {
@@ -94,38 +90,20 @@ impl CapsuleAppearance {
     }
 }
 
-/// The capsule robot.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+/// The capsule robot (a rig file's `[robot]`; the paper's capsule is in
+/// `fieldmaps/rigs/paper.toml`, every value sourced there).
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RobotParams {
-    /// Dipole moment of the embedded N50 1 mm × 1 mm disk magnet, A·m².
-    /// Paper: 0.37 mN at 0.43 T/m ⇒ |m| = 0.37e-3 / 0.43 ≈ 8.6e-4 A·m².
+    /// Dipole moment of the embedded magnet, A·m².
     pub magnet_moment_am2: f64,
-    /// Robot mass, kg (≈ 6 mg magnet + 20 mg resin + 22 mg fluid ≈ 50 mg, RIG.md).
+    /// Robot mass, kg.
     pub mass_kg: f64,
-    /// Hydrodynamic added mass, kg. Default 0.5·ρ·V with the capsule taken as a cylinder
-    /// (V = π r² L = 4.56e-8 m³) in ρ = 1113 kg/m³ fluid: 2.54e-5 kg. The coefficient 0.5 is the
-    /// sphere value, a middle ground between axial (≈0.1 for L/D ≈ 2.6) and broadside (≈1) motion.
+    /// Hydrodynamic added mass, kg.
     pub added_mass_kg: f64,
     /// Capsule length, m.
     pub length_m: f64,
     /// Capsule diameter, m.
     pub diameter_m: f64,
-}
-
-impl Default for RobotParams {
-    fn default() -> Self {
-        let length_m: f64 = 7.4e-3;
-        let diameter_m: f64 = 2.8e-3;
-        let volume = std::f64::consts::PI * (0.5 * diameter_m).powi(2) * length_m;
-        Self {
-            magnet_moment_am2: 8.6e-4,
-            mass_kg: 5.0e-5,
-            added_mass_kg: 0.5 * FluidParams::GLYCERIN_WATER_DENSITY * volume,
-            length_m,
-            diameter_m,
-        }
-    }
 }
 
 impl RobotParams {
@@ -177,8 +155,7 @@ impl RobotParams {
 }
 
 /// Glycerin–water working fluid.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FluidParams {
     pub viscosity_pa_s: f64,
     pub density_kg_m3: f64,
@@ -211,23 +188,10 @@ impl FluidParams {
     }
 }
 
-impl Default for FluidParams {
-    /// The static-fluid baseline of the paper (20 cP).
-    fn default() -> Self {
-        Self::cp20()
-    }
-}
-
-/// Coil driver limits.
-///
-/// The paper gives 0.36 kW per coil (FEA case) and 60 V supplies. Taking 0.36 kW as the rated
-/// power of a coil driven at the full supply voltage gives R = V²/P = 3600/360 = 10 Ω and
-/// I_max = V/R = 6 A (= sqrt(P/R)). The paper gives no total budget; we assume 2.16 kW
-/// (60 V × 36 A, i.e. six coils at full rating at once) as the supply/thermal budget.
-/// The resistance is an electrical-budget parameter: the field model's turn counts are
-/// calibrated to the paper's FEA numbers, not derived from a wire gauge.
+/// Coil driver limits in one-value-for-all form (a rig's, from its file:
+/// [`crate::rigfile::Rig::coil_limits`], or a scenario's `[control.limits]`, every key given).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(deny_unknown_fields)]
 pub struct CoilLimits {
     /// Per-coil current magnitude limit, A.
     pub max_current_a: f64,
@@ -238,11 +202,6 @@ pub struct CoilLimits {
 }
 
 impl CoilLimits {
-    /// Rated power of one coil in the paper's FEA case, W.
-    pub const RATED_COIL_POWER_W: f64 = 360.0;
-    /// Supply voltage, V.
-    pub const SUPPLY_VOLTAGE_V: f64 = 60.0;
-
     /// Current that dissipates `power_w` in one coil: I = sqrt(P/R).
     pub fn current_for_power(&self, power_w: f64) -> Result<f64, RigError> {
         self.validate()?;
@@ -267,69 +226,43 @@ impl CoilLimits {
     }
 }
 
-impl Default for CoilLimits {
-    fn default() -> Self {
-        let r = Self::SUPPLY_VOLTAGE_V.powi(2) / Self::RATED_COIL_POWER_W;
-        Self {
-            max_current_a: Self::SUPPLY_VOLTAGE_V / r,
-            max_total_power_w: 2160.0,
-            coil_resistance_ohm: r,
-        }
-    }
-}
-
-/// Everything above in one TOML-loadable block (`[robot]`, `[fluid]`, `[coil_limits]`).
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct RigConfig {
-    pub robot: RobotParams,
-    pub fluid: FluidParams,
-    pub coil_limits: CoilLimits,
-}
-
-impl RigConfig {
-    /// Parse and validate; missing fields take their defaults.
-    pub fn from_toml_str(s: &str) -> Result<Self, RigError> {
-        let cfg: Self = toml::from_str(s)?;
-        cfg.validate()?;
-        Ok(cfg)
-    }
-
-    pub fn to_toml_string(&self) -> Result<String, RigError> {
-        Ok(toml::to_string(self)?)
-    }
-
-    pub fn validate(&self) -> Result<(), RigError> {
-        self.robot.validate()?;
-        self.fluid.validate()?;
-        self.coil_limits.validate()
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    /// The paper's capsule as `fieldmaps/rigs/paper.toml` gives it.
+    fn capsule() -> RobotParams {
+        RobotParams {
+            magnet_moment_am2: 8.6e-4,
+            mass_kg: 5.0e-5,
+            added_mass_kg: 2.536e-5,
+            length_m: 7.4e-3,
+            diameter_m: 2.8e-3,
+        }
+    }
+
     #[test]
-    fn defaults_are_valid_and_consistent() {
-        let cfg = RigConfig::default();
-        cfg.validate().unwrap();
-        let l = cfg.coil_limits;
-        assert!((l.coil_resistance_ohm - 10.0).abs() < 1e-12);
-        assert!((l.max_current_a - 6.0).abs() < 1e-12);
+    fn limits_convert_power_and_current() {
+        let l = CoilLimits {
+            max_current_a: 6.0,
+            max_total_power_w: 2160.0,
+            coil_resistance_ohm: 10.0,
+        };
+        l.validate().unwrap();
         assert!((l.max_coil_power_w() - 360.0).abs() < 1e-9);
         assert!((l.current_for_power(360.0).unwrap() - 6.0).abs() < 1e-12);
-        let r = cfg.robot;
-        assert!(
-            (r.added_mass_kg - 2.536e-5).abs() < 0.01e-5,
-            "{}",
-            r.added_mass_kg
-        );
+        assert!(l.current_for_power(f64::NAN).is_err());
+        let open = CoilLimits {
+            coil_resistance_ohm: 0.0,
+            ..l
+        };
+        assert!(open.current_for_power(1.0).is_err());
     }
 
     #[test]
     fn damping_presets() {
-        let r = RobotParams::default();
+        let r = capsule();
+        r.validate().unwrap();
         let c20 = r.translational_damping(&FluidParams::cp20()).unwrap();
         let c43 = r.translational_damping(&FluidParams::cp4_3()).unwrap();
         assert!((c20 / 5.6e-4 - 1.0).abs() < 0.05, "{c20}");
@@ -337,25 +270,17 @@ mod tests {
     }
 
     #[test]
-    fn toml_roundtrip_and_partial() {
-        let cfg = RigConfig {
-            fluid: FluidParams::cp4_3(),
-            ..Default::default()
+    fn bad_capsules_are_refused() {
+        let light = RobotParams {
+            mass_kg: -1.0,
+            ..capsule()
         };
-        let s = cfg.to_toml_string().unwrap();
-        assert_eq!(RigConfig::from_toml_str(&s).unwrap(), cfg);
-        let partial = RigConfig::from_toml_str("[fluid]\nviscosity_pa_s = 0.0043\n").unwrap();
-        assert_eq!(partial.fluid, FluidParams::cp4_3());
-        assert_eq!(partial.robot, RobotParams::default());
-    }
-
-    #[test]
-    fn bad_config_is_an_error() {
-        assert!(RigConfig::from_toml_str("[robot]\nmass_kg = -1.0\n").is_err());
-        assert!(RigConfig::from_toml_str("[robot]\nlength_m = 1e-3\n").is_err());
-        assert!(RigConfig::from_toml_str("[fluid]\nbogus = 1\n").is_err());
-        assert!(RigConfig::from_toml_str("not toml [").is_err());
-        assert!(CoilLimits::default().current_for_power(f64::NAN).is_err());
+        assert!(light.validate().is_err());
+        let short = RobotParams {
+            length_m: 1e-3,
+            ..capsule()
+        };
+        assert!(short.validate().is_err());
     }
 }
 

@@ -103,12 +103,11 @@ impl WallField {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::phantom::Phantom;
 
     #[test]
     fn matches_the_parametric_phantom_within_a_pixel() {
-        let geometry = ImageGeometry::default();
-        let heart = Phantom::default_heart();
+        let geometry = crate::phantom::tests::geom();
+        let heart = crate::phantom::tests::heart();
         let mask = CanalMask::from_phantom(&heart, &geometry).unwrap();
         let walls = WallField::from_mask(&mask);
         let px = geometry.mm_per_px * 1e-3;

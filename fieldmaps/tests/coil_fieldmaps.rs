@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use fieldmaps::allocation::{actuation_matrix, actuation_matrix_from, allocate_pinv};
-use fieldmaps::coils::{CoilField, CoilSystem, COIL_COUNT};
+use fieldmaps::coils::{CoilField, CoilSystem};
 use fieldmaps::fieldmap::{
     CoilFieldMaps, CoilInfo, FieldMapError, GridSpec, Interpolation, MANIFEST_FILE,
 };
@@ -30,16 +30,26 @@ impl SeededRng {
 }
 
 fn committed() -> CoilFieldMaps {
-    CoilFieldMaps::load_default().unwrap_or_else(|e| {
-        panic!("committed maps missing or bad ({e}); regenerate with `cargo run --release -p fieldgen -- coils`")
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("coils");
+    CoilFieldMaps::load(&dir).unwrap_or_else(|e| {
+        panic!("committed maps missing or bad ({e}); regenerate with `millinav maps coils --rig fieldmaps/rigs/paper.toml`")
     })
+}
+
+/// The paper rig's coils, from its rig file (the model the committed maps sample).
+fn paper_coils() -> CoilSystem {
+    let rig = fieldmaps::rigfile::Rig::load(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("rigs/paper.toml"),
+    )
+    .unwrap();
+    rig.winding_model().unwrap()
 }
 
 #[test]
 fn committed_maps_match_the_rig() {
     let maps = committed();
-    let sys = CoilSystem::paper_rig();
-    assert_eq!(maps.coil_count(), COIL_COUNT);
+    let sys = paper_coils();
+    assert_eq!(maps.coil_count(), sys.len());
     for (info, coil) in maps.coils().iter().zip(&sys.coils) {
         assert_eq!(info.name, coil.name);
         let turns = info.total_turns.unwrap();
@@ -62,7 +72,7 @@ fn committed_maps_match_the_rig() {
 /// model for every coil; measured 1.3e-4 and 1.4e-3. Plain trilinear: 6e-3 / 1e-2.
 #[test]
 fn interpolation_error_is_bounded() {
-    let sys = CoilSystem::paper_rig();
+    let sys = paper_coils();
     let mut maps = committed();
     for (scheme, bound_b, bound_g) in [
         (Interpolation::Quadratic, 3e-4, 3e-3),
@@ -73,7 +83,7 @@ fn interpolation_error_is_bounded() {
         let (mut eb, mut eg) = (0.0f64, 0.0f64);
         for _ in 0..1500 {
             let p = rng.point_in(maps.grid());
-            for c in 0..COIL_COUNT {
+            for c in 0..sys.len() {
                 let (bd, gd) = sys.field_and_gradient_per_amp(c, &p);
                 let (bi, gi) = maps.try_field_and_gradient_per_amp(c, &p).unwrap();
                 eb = eb.max((bi - bd).norm() / bd.norm());
@@ -104,7 +114,7 @@ fn interpolated_field_is_divergence_and_curl_free() {
         for k in 0..3 {
             p[k] = p[k].clamp(maps.grid().origin_m[k] + h, max[k] - h);
         }
-        for c in 0..COIL_COUNT {
+        for c in 0..maps.coil_count() {
             let (_, g) = maps.field_and_gradient_per_amp(c, &p);
             let n = g.norm();
             worst_sym = worst_sym
@@ -135,11 +145,11 @@ fn interpolated_field_is_divergence_and_curl_free() {
 
 #[test]
 fn maps_drive_the_same_allocation_as_the_direct_model() {
-    let sys = CoilSystem::paper_rig();
+    let sys = paper_coils();
     let maps = committed();
     let p = Vector3::new(0.012, -0.021, 0.0);
     let m = in_plane_moment(8.6e-4, 0.7);
-    let ids: Vec<usize> = (0..COIL_COUNT).collect();
+    let ids: Vec<usize> = (0..sys.len()).collect();
     let a_direct = actuation_matrix(&sys, &p, &m, &ids, 0.1);
     let a_maps = actuation_matrix_from(&maps, &p, &m, &ids, 0.1);
     assert!((&a_maps - &a_direct).norm() < 2e-3 * a_direct.norm());
@@ -149,7 +159,7 @@ fn maps_drive_the_same_allocation_as_the_direct_model() {
     assert!((&i_maps - &i_direct).norm() < 1e-2 * i_direct.norm());
     // A trait object works as a drop-in too.
     let dynamic: &dyn CoilField = &maps;
-    let (b, _) = dynamic.field_and_gradient(&[1.0; COIL_COUNT], &p);
+    let (b, _) = dynamic.field_and_gradient(&vec![1.0; sys.len()], &p);
     assert!(b.iter().all(|v| v.is_finite()));
 }
 
@@ -188,7 +198,7 @@ fn small_maps(tag: &str) -> (PathBuf, CoilFieldMaps) {
         std::process::id()
     ));
     let _ = std::fs::remove_dir_all(&dir);
-    let sys = CoilSystem::paper_rig();
+    let sys = paper_coils();
     let grid = GridSpec::centered([0.01, 0.01, 0.004], 0.005).unwrap();
     let infos = sys
         .coils

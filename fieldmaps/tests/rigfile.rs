@@ -1,15 +1,14 @@
-//! The rig file: `rigs/paper.toml` must rebuild exactly what the code's paper defaults build
-//! (coils, allocation subset, limits, camera, phantom, zones, robot), and every kind of bad
+//! The rig file: `rigs/paper.toml` must describe the paper's rig (coils and the field they were
+//! solved for, allocation subset, limits, camera, phantom, zones, robot), and every kind of bad
 //! input must give one error naming the file and the field.
 
 use std::path::{Path, PathBuf};
 
-use fieldmaps::allocation::DEFAULT_PLANAR_COILS;
-use fieldmaps::coils::{CoilField, CoilSystem};
+use fieldmaps::coils::CoilField;
 use fieldmaps::fieldmap::CoilFieldMaps;
 use fieldmaps::mask::CanalMask;
 use fieldmaps::phantom::{ImageGeometry, Phantom};
-use fieldmaps::rig::{CoilLimits, RobotParams};
+use fieldmaps::rig::CoilLimits;
 use fieldmaps::rigfile::{
     CameraPixelFormat, FieldModel, Rig, RigCoilField, RigFileError, ZoneKind, MAX_COILS,
 };
@@ -21,6 +20,17 @@ fn paper_path() -> PathBuf {
 
 fn paper_text() -> String {
     std::fs::read_to_string(paper_path()).unwrap()
+}
+
+/// The paper's top camera: 1020 x 1020 px over 92 x 92 mm, centred on the origin.
+fn paper_view() -> ImageGeometry {
+    ImageGeometry {
+        width_px: 1020,
+        height_px: 1020,
+        mm_per_px: 92.0 / 1020.0,
+        origin_x_mm: -46.0,
+        origin_y_mm: 46.0,
+    }
 }
 
 fn paper() -> Rig {
@@ -60,24 +70,49 @@ fn assert_same_field(a: &dyn CoilField, b: &dyn CoilField, what: &str) {
 }
 
 #[test]
-fn paper_rig_file_builds_the_paper_coils() {
+fn paper_rig_file_has_the_papers_coils() {
     let rig = paper();
     assert_eq!(rig.name, "paper");
     assert_eq!(rig.field_model, FieldModel::Analytic);
     let RigCoilField::Analytic(system) = &rig.coil_field else {
         panic!("paper.toml should use the analytic model");
     };
-    let reference = CoilSystem::paper_rig();
+    // 12 planar coils, 4 units (N, E, S, W) of 3 concentric coils, unit-major.
     let names: Vec<&str> = system.coils.iter().map(|c| c.name.as_str()).collect();
-    let expected: Vec<&str> = reference.coils.iter().map(|c| c.name.as_str()).collect();
+    let expected: Vec<String> = ["N", "E", "S", "W"]
+        .iter()
+        .flat_map(|u| ["small", "mid", "large"].map(|s| format!("{u}_{s}")))
+        .collect();
     assert_eq!(names, expected);
-    for (a, b) in system.coils.iter().zip(&reference.coils) {
-        assert_eq!(a.loops.len(), b.loops.len(), "{}", a.name);
-        assert!((a.total_turns() / b.total_turns() - 1.0).abs() < 1e-12);
-    }
-    assert_same_field(&rig.coil_field, &reference, "analytic");
-    assert_eq!(rig.allocation_coils, DEFAULT_PLANAR_COILS.to_vec());
-    assert_eq!(rig.coil_limits(), CoilLimits::default());
+    assert_same_field(&rig.coil_field, &rig.winding_model().unwrap(), "analytic");
+    // Positive current: the field at the centre points away from the unit; 4-fold symmetry.
+    let o = Vector3::zeros();
+    let id = |name: &str| rig.coil_index(name).unwrap();
+    let b_n = system.field_per_amp(id("N_small"), &o);
+    let b_e = system.field_per_amp(id("E_large"), &o);
+    let b_s = system.field_per_amp(id("S_small"), &o);
+    assert!(b_n.y < 0.0 && b_n.x.abs() < 1e-15 * b_n.norm());
+    assert!(b_e.x < 0.0 && b_e.y.abs() < 1e-15 * b_e.norm());
+    assert!((b_s + b_n).norm() < 1e-12 * b_n.norm());
+    // The paper drives 8 of the 12: the small and large coil of every unit.
+    let allocation: Vec<&str> = rig
+        .allocation_coils
+        .iter()
+        .map(|&i| rig.coils[i].name.as_str())
+        .collect();
+    assert_eq!(
+        allocation,
+        ["N_small", "N_large", "E_small", "E_large", "S_small", "S_large", "W_small", "W_large"]
+    );
+    // 0.36 kW per coil at 60 V: 10 ohm, 6 A; 2.16 kW in all.
+    assert_eq!(
+        rig.coil_limits(),
+        CoilLimits {
+            max_current_a: 6.0,
+            max_total_power_w: 2160.0,
+            coil_resistance_ohm: 10.0,
+        }
+    );
     for c in &rig.coils {
         assert_eq!(
             (c.resistance_ohm, c.max_current_a),
@@ -89,30 +124,110 @@ fn paper_rig_file_builds_the_paper_coils() {
 }
 
 #[test]
+fn paper_coils_make_the_papers_fea_field_at_its_peak() {
+    // The turns were solved for the paper's FEA case (24.05 mT, 13.92 mT/cm with the north
+    // unit's small and large coils at 0.36 kW each): the file must still meet it.
+    let rig = paper();
+    let [reference] = rig.reference_fields.as_slice() else {
+        panic!("paper.toml should give one reference field");
+    };
+    assert_eq!(
+        reference.currents_a,
+        [
+            (rig.coil_index("N_small").unwrap(), 6.0),
+            (rig.coil_index("N_large").unwrap(), 6.0)
+        ]
+    );
+    assert!((reference.field_t - 24.05e-3).abs() < 1e-12);
+    assert!((reference.gradient_t_per_m.unwrap() - 1.392).abs() < 1e-12);
+    let read = reference.measure(&rig.coil_field);
+    println!("paper reference field on the model: {read:?}");
+    assert!(
+        (read.field_t / reference.field_t - 1.0).abs() < 1e-4,
+        "{read:?}"
+    );
+    assert!(
+        (read.gradient_t_per_m / reference.gradient_t_per_m.unwrap() - 1.0).abs() < 1e-4,
+        "{read:?}"
+    );
+    // The reference point is where |B| peaks over the control-plane workspace (1 mm grid).
+    let currents = reference.currents(rig.coils.len());
+    let at_point = rig
+        .coil_field
+        .field_and_gradient(&currents, &reference.point_m)
+        .0
+        .norm();
+    for ix in -50..=50 {
+        for iy in -50..=50 {
+            let p = Vector3::new(ix as f64, iy as f64, 0.0) * 1e-3;
+            let b = rig.coil_field.field_and_gradient(&currents, &p).0.norm();
+            assert!(
+                b <= at_point * (1.0 + 1e-9),
+                "|B| {b} at {p:?} > {at_point}"
+            );
+        }
+    }
+}
+
+#[test]
+fn reference_fields_are_checked_like_every_key() {
+    let text = paper_text();
+    let bad = [
+        (
+            "coils = [\"N_small\", \"N_large\"]      # paper",
+            "coils = [\"N_small\", \"nope\"]",
+            "electromagnet.reference_fields[0].coils[1]",
+        ),
+        (
+            "power_w = 360.0 ",
+            "current_a = 6.0\npower_w = 360.0 ",
+            "electromagnet.reference_fields[0]: give exactly one",
+        ),
+        (
+            "field_mt = 24.05 ",
+            "field_mt = -1.0 ",
+            "electromagnet.reference_fields[0].field_mt",
+        ),
+        (
+            "direction = [0.0, 1.0, 0.0] ",
+            "direction = [0.0, 0.0, 0.0] ",
+            "electromagnet.reference_fields[0].direction",
+        ),
+    ];
+    for (from, to, expect) in bad {
+        assert!(text.contains(from), "{from}");
+        let err = Rig::parse(&text.replacen(from, to, 1), &paper_path()).unwrap_err();
+        assert!(err.to_string().contains(expect), "{expect}: {err}");
+    }
+}
+
+#[test]
 fn paper_rig_with_maps_model_is_the_committed_maps() {
     // Parsed as if it were paper.toml itself, so the relative paths still resolve.
     let text = paper_text().replace(
-        "field_model = \"analytic\"",
-        "field_model = \"maps:../coils\"",
+        "field_model = { kind = \"analytic\" }",
+        "field_model = { kind = \"maps\", dir = \"../coils\" }",
     );
     let rig = Rig::parse(&text, &paper_path()).unwrap_or_else(|e| panic!("{e}"));
     assert!(matches!(rig.field_model, FieldModel::Maps(_)));
-    let maps = CoilFieldMaps::load_default().unwrap();
+    let maps = CoilFieldMaps::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("coils")).unwrap();
     assert_same_field(&rig.coil_field, &maps, "maps");
 }
 
 #[test]
 fn paper_camera_robot_and_flow_conditions() {
     let rig = paper();
-    assert_eq!(rig.camera.geometry, ImageGeometry::default());
+    assert_eq!(rig.camera.geometry, paper_view());
     assert_eq!(rig.camera.pixel_format, CameraPixelFormat::Rgb8);
-    let (r, d) = (rig.robot, RobotParams::default());
+    // The paper's capsule (RIG.md): 7.4 x 2.8 mm, 8.6e-4 A m², 50 mg, added mass 0.5 rho V.
+    let r = rig.robot;
+    let volume = std::f64::consts::PI * 1.4e-3_f64.powi(2) * 7.4e-3;
     for (a, b) in [
-        (r.magnet_moment_am2, d.magnet_moment_am2),
-        (r.mass_kg, d.mass_kg),
-        (r.added_mass_kg, d.added_mass_kg),
-        (r.length_m, d.length_m),
-        (r.diameter_m, d.diameter_m),
+        (r.magnet_moment_am2, 8.6e-4),
+        (r.mass_kg, 5.0e-5),
+        (r.added_mass_kg, 0.5 * 1113.0 * volume),
+        (r.length_m, 7.4e-3),
+        (r.diameter_m, 2.8e-3),
     ] {
         assert!((a / b - 1.0).abs() < 1e-12, "{a} vs {b}");
     }
@@ -136,9 +251,11 @@ fn paper_camera_robot_and_flow_conditions() {
 }
 
 #[test]
-fn paper_mask_and_ports_match_the_default_heart() {
+fn paper_mask_and_ports_match_the_heart_phantom_file() {
     let rig = paper();
-    let heart = Phantom::default_heart();
+    let heart =
+        Phantom::load(&fieldmaps::data_root().join("fieldmaps/rigs/paper/heart_phantom.toml"))
+            .unwrap();
     let px_m = rig.camera.geometry.mm_per_px * 1e-3;
     let (mut compared, mut canal) = (0, 0);
     // 0.37 mm steps: not commensurate with the pixels, so points fall everywhere in them.
@@ -155,7 +272,7 @@ fn paper_mask_and_ports_match_the_default_heart() {
     }
     assert!(compared > 55_000 && canal > 10_000, "{compared} {canal}");
     // The committed PNG is exactly the default phantom's raster.
-    let raster = CanalMask::from_phantom(&heart, &ImageGeometry::default()).unwrap();
+    let raster = CanalMask::from_phantom(&heart, &paper_view()).unwrap();
     assert_eq!(rig.phantom.mask, raster);
 
     let inlets = heart.inlets();
@@ -271,8 +388,8 @@ fn portable_paper_text() -> String {
             &format!("\"{}/", rigs.join("../flow").display()),
         )
         .replace(
-            "\"maps:../coils\"",
-            &format!("\"maps:{}\"", rigs.join("../coils").display()),
+            "dir = \"../coils\"",
+            &format!("dir = \"{}\"", rigs.join("../coils").display()),
         )
 }
 
@@ -470,17 +587,44 @@ fn bad_electromagnet_values() {
         "electromagnet.allocation_coils[1]",
         "no coil named \"X_huge\"",
     );
-    let t = replace_once(&base, "field_model = \"analytic\"", "field_model = \"fem\"");
+    let analytic = "field_model = { kind = \"analytic\" }";
+    let t = replace_once(&base, analytic, "field_model = { kind = \"fem\" }");
     expect_err(
         "model",
         &t,
+        "electromagnet.field_model.kind",
+        "must be \"analytic\" or \"maps\", got \"fem\"",
+    );
+    // The retired string form says what to write instead.
+    let t = replace_once(&base, analytic, "field_model = \"maps:../coils\"");
+    expect_err(
+        "model-string",
+        &t,
         "electromagnet.field_model",
-        "\"analytic\" or \"maps:<dir>\"",
+        "is a table now, not the string \"maps:../coils\"",
+    );
+    let t = replace_once(&base, analytic, "field_model = { kind = \"maps\" }");
+    expect_err(
+        "maps-without-dir",
+        &t,
+        "electromagnet.field_model.dir",
+        "required by kind = \"maps\"",
     );
     let t = replace_once(
         &base,
-        "field_model = \"analytic\"",
-        "field_model = \"maps:no/such/dir\"",
+        analytic,
+        "field_model = { kind = \"analytic\", calibrate = \"x.toml\" }",
+    );
+    expect_err(
+        "model-typo",
+        &t,
+        "electromagnet.field_model",
+        "unknown field `calibrate`",
+    );
+    let t = replace_once(
+        &base,
+        analytic,
+        "field_model = { kind = \"maps\", dir = \"no/such/dir\" }",
     );
     expect_err(
         "missing-maps",
@@ -492,8 +636,11 @@ fn bad_electromagnet_values() {
     let coils_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("coils");
     let t = replace_once(
         &base,
-        "field_model = \"analytic\"",
-        &format!("field_model = \"maps:{}\"", coils_dir.display()),
+        analytic,
+        &format!(
+            "field_model = {{ kind = \"maps\", dir = \"{}\" }}",
+            coils_dir.display()
+        ),
     );
     let t = replace_once(&t, "name = \"N_small\"", "name = \"Tmp\"");
     let t = replace_once(&t, "name = \"N_mid\"", "name = \"N_small\"");

@@ -23,12 +23,8 @@ pub const CONTRACT_VERSION: u32 = 4;
 
 pub use shm_schemas_core::{PixelMapping, MAX_COILS};
 
-/// Camera frame geometry of the rig (top view, ≈92 x 92 mm).
-pub const FRAME_WIDTH: u32 = 1020;
-pub const FRAME_HEIGHT: u32 = 1020;
+/// Bytes per pixel of an RGB8 frame (a frame's size is its rig camera's: `FrameHeader`).
 pub const FRAME_CHANNELS: u32 = 3;
-pub const FRAME_BYTES: usize = (FRAME_WIDTH * FRAME_HEIGHT * FRAME_CHANNELS) as usize;
-pub const FRAME_FIELD_OF_VIEW_MM: f64 = 92.0;
 
 /// Sequence value used where a message does not descend from any frame (e.g. a safe-state zero).
 pub const NO_FRAME: u64 = u64::MAX;
@@ -964,13 +960,18 @@ mod tests {
         assert_eq!(type_name::<Pose>(), "millinav::Pose.v4");
     }
 
+    /// A camera of this size for the header tests (any size works the same).
+    const WIDTH: u32 = 640;
+    const HEIGHT: u32 = 640;
+    const FRAME_BYTES: usize = (WIDTH * HEIGHT * FRAME_CHANNELS) as usize;
+
     fn good_header() -> FrameHeader {
         FrameHeader {
-            width: FRAME_WIDTH,
-            height: FRAME_HEIGHT,
-            stride: FRAME_WIDTH * 3,
+            width: WIDTH,
+            height: HEIGHT,
+            stride: WIDTH * 3,
             pixel_format: PixelFormat::Rgb8 as u32,
-            mm_per_px: FRAME_FIELD_OF_VIEW_MM / FRAME_WIDTH as f64,
+            mm_per_px: 92.0 / WIDTH as f64,
             origin_x_mm: -46.0,
             origin_y_mm: 46.0,
             ..Default::default()
@@ -1016,7 +1017,7 @@ mod tests {
         // Rows grow downward, y grows upward.
         assert!(header.pixel_to_world_m(0.0, 10.0)[1] < corner[1]);
         // The image centre is the world origin for a centred camera.
-        let mid = (FRAME_WIDTH as f64 - 1.0) / 2.0;
+        let mid = (WIDTH as f64 - 1.0) / 2.0;
         let centre = header.pixel_to_world_m(mid, mid);
         assert!(centre[0].abs() < 1e-12 && centre[1].abs() < 1e-12);
         for (col, row) in [(12.25, 700.5), (0.0, 1019.0), (511.7, 3.3)] {

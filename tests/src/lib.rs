@@ -504,7 +504,7 @@ pub fn scenario_text(
         .map(|p| format!("[{:.3}, {:.3}]", p[0], p[1]))
         .collect();
     format!(
-        "[run]\nmode = \"lockstep\"\nseed = 3\nduration_s = {duration_s}\nframe_period_ms = 10.0\n\n\
+        "[run]\nmode = \"lockstep\"\nseed = 3\nduration_s = {duration_s}\nframe_period_ms = 10.0\nrig = \"fieldmaps/rigs/paper.toml\"\n\n\
          [fluid]\nviscosity_cp = 20.0\n\n\
          [trajectory]\nwaypoints_mm = [{}]\nspeed_mm_s = {speed_mm_s}\nstart_time_s = 0.5\n\n{extra}\n",
         points.join(", ")
@@ -587,7 +587,12 @@ impl PaperCell {
         &self,
         trace: &[millinav_experiments::TraceRow],
     ) -> millinav_experiments::Metrics {
-        let resistance = fieldmaps::rig::CoilLimits::default().coil_resistance_ohm;
+        let resistance = self
+            .scenario
+            .rig()
+            .expect("the cell's rig")
+            .coil_limits()
+            .coil_resistance_ohm;
         millinav_experiments::metrics(trace, &self.reference, resistance)
     }
 }

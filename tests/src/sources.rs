@@ -46,7 +46,7 @@ pub fn test_module_files(files: &[PathBuf]) -> Vec<PathBuf> {
                 continue;
             }
             let Some(next) = lines.next() else { break };
-            let declared = next
+            let declared = module_item(next)
                 .strip_prefix("mod ")
                 .and_then(|rest| rest.strip_suffix(';'))
                 .map(str::trim);
@@ -57,6 +57,19 @@ pub fn test_module_files(files: &[PathBuf]) -> Vec<PathBuf> {
         }
     }
     out
+}
+
+/// `line` without a leading visibility (`pub`, `pub(crate)`, `pub(super)`, `pub(in …)`), so a
+/// `pub(crate) mod tests` reads as `mod tests`.
+fn module_item(line: &str) -> &str {
+    let Some(rest) = line.strip_prefix("pub") else {
+        return line;
+    };
+    let rest = match rest.strip_prefix('(') {
+        Some(scoped) => scoped.split_once(')').map_or(scoped, |(_, after)| after),
+        None => rest,
+    };
+    rest.trim_start()
 }
 
 /// The directory holding the files of `file`'s child modules: `lib.rs`, `main.rs` and `mod.rs`
@@ -80,7 +93,7 @@ pub fn before_inline_tests(text: &str) -> &str {
         let start = from + at;
         let rest = text[start + ATTRIBUTE.len()..].trim_start();
         let header = rest.lines().next().unwrap_or("");
-        if header.starts_with("mod ") && header.trim_end().ends_with('{') {
+        if module_item(header).starts_with("mod ") && header.trim_end().ends_with('{') {
             return &text[..start];
         }
         from = start + 1;

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Cross-check millinav's closed-form coil model against magpylib.
 
-Exports the 12 paper-rig coils' filaments with `fieldgen coils --export-loops`, evaluates the
+Exports a rig's coils' filaments with `fieldgen coils --export-loops`, evaluates the
 direct model at random workspace points with `fieldgen coils --probe`, builds the same loops as
 magpylib `current.Circle` sources, and compares per coil and point:
 
@@ -10,7 +10,7 @@ magpylib `current.Circle` sources, and compares per coil and point:
 
 Prints the maximum relative errors and exits 1 if the field error exceeds --tol.
 
-usage: magpylib_check.py --fieldgen PATH/TO/fieldgen [--points 500] [--seed 1] [--tol 1e-6]
+usage: magpylib_check.py --fieldgen PATH/TO/fieldgen --rig RIG.toml [--points 500] [--seed 1] [--tol 1e-6]
 """
 
 import argparse
@@ -60,6 +60,7 @@ def coil_collection(coil):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--fieldgen", required=True, help="path of the fieldgen binary")
+    ap.add_argument("--rig", required=True, help="rig file whose coils to check")
     ap.add_argument("--points", type=int, default=500)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--tol", type=float, default=1e-6, help="max allowed relative field error")
@@ -71,13 +72,13 @@ def main():
         loops_path = os.path.join(tmp, "loops.json")
         points_path = os.path.join(tmp, "points.json")
         probe_path = os.path.join(tmp, "probe.json")
-        subprocess.run([args.fieldgen, "coils", "--export-loops", loops_path], check=True,
+        subprocess.run([args.fieldgen, "coils", "--rig", args.rig, "--export-loops", loops_path], check=True,
                        stdout=subprocess.DEVNULL)
         rng = np.random.default_rng(args.seed)
         pts = rng.uniform(-1.0, 1.0, size=(args.points, 3)) * [args.half_xy, args.half_xy, args.half_z]
         with open(points_path, "w") as f:
             json.dump({"points_m": pts.tolist()}, f)
-        subprocess.run([args.fieldgen, "coils", "--probe", points_path, "--probe-out", probe_path],
+        subprocess.run([args.fieldgen, "coils", "--rig", args.rig, "--probe", points_path, "--probe-out", probe_path],
                        check=True, stdout=subprocess.DEVNULL)
         with open(loops_path) as f:
             loops = json.load(f)

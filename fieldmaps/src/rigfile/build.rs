@@ -30,7 +30,7 @@ pub(super) struct Ctx<'a> {
 }
 
 impl Ctx<'_> {
-    fn err(&self, field: impl Into<String>, message: impl Into<String>) -> RigFileError {
+    pub(super) fn err(&self, field: impl Into<String>, message: impl Into<String>) -> RigFileError {
         RigFileError::Invalid {
             path: self.path.to_owned(),
             field: field.into(),
@@ -67,15 +67,15 @@ impl Ctx<'_> {
     }
 }
 
-fn finite(v: &[f64]) -> bool {
+pub(super) fn finite(v: &[f64]) -> bool {
     v.iter().all(|x| x.is_finite())
 }
 
-fn positive(v: f64) -> bool {
+pub(super) fn positive(v: f64) -> bool {
     v.is_finite() && v > 0.0
 }
 
-fn fmt_vec(v: &[f64]) -> String {
+pub(super) fn fmt_vec(v: &[f64]) -> String {
     let parts: Vec<String> = v.iter().map(|x| format!("{x}")).collect();
     format!("[{}]", parts.join(", "))
 }
@@ -152,9 +152,9 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
             field_calibration.clone(),
             coil_field.clone(),
         ),
-        Some(text) => {
+        Some(value) => {
             let field = "electromagnet.twin_field_model";
-            let (model, calibration) = parse_field_model(ctx, field, text)?;
+            let (model, calibration) = parse_field_model(ctx, field, value)?;
             let built = build_field(ctx, field, &model, &coils)?;
             let built = calibrate_field(ctx, field, built, calibration.as_deref(), &coils)?;
             (model, calibration, built)
@@ -169,6 +169,7 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
     });
     require_positive(ctx, "electromagnet.driver_supply_v", driver_supply_v)?;
     let allocation_coils = build_allocation(ctx, &em.allocation_coils, &coils)?;
+    let reference_fields = super::reference::build(ctx, &em.reference_fields, &coils)?;
     let camera = build_camera(ctx, &file.camera)?;
     let phantom = build_phantom(ctx, &file.phantom, &camera)?;
     let robot = build_robot(ctx, &file.robot)?;
@@ -190,6 +191,7 @@ pub(super) fn build(ctx: &Ctx<'_>, file: schema::RigFile) -> Result<Rig, RigFile
         max_total_power_w: em.max_total_power_w,
         driver_supply_v,
         allocation_coils,
+        reference_fields,
         camera,
         camera_source: file.camera.source.clone(),
         phantom,
@@ -315,39 +317,59 @@ fn build_coils(
     Ok(coils)
 }
 
-/// `<base>` or `<base> + calibration:<file>`, base `analytic` or `maps:<dir>`.
+/// `{ kind = "analytic" }` or `{ kind = "maps", dir = "<dir>" }`, either with an optional
+/// `calibration = "<file>"`.
 fn parse_field_model(
     ctx: &Ctx<'_>,
     field: &str,
-    text: &str,
+    value: &toml::Value,
 ) -> Result<(FieldModel, Option<PathBuf>), RigFileError> {
-    let usage = || {
-        ctx.err(
+    let example = "e.g. { kind = \"maps\", dir = \"../coils\" } or \
+                   { kind = \"analytic\", calibration = \"coil_calibration.toml\" }";
+    if let toml::Value::String(text) = value {
+        return Err(ctx.err(
             field,
-            format!(
-                "must be \"analytic\" or \"maps:<dir>\", optionally followed by \
-                 \" + calibration:<file>\"; got {text:?}"
-            ),
-        )
-    };
-    let mut parts = text.split('+').map(str::trim);
-    let base = match parts.next().unwrap_or_default() {
-        "analytic" => FieldModel::Analytic,
-        other => match other.strip_prefix("maps:").map(str::trim) {
-            Some(dir) if !dir.is_empty() => FieldModel::Maps(ctx.resolve(Path::new(dir))),
-            _ => return Err(usage()),
-        },
-    };
-    let calibration = match parts.next() {
-        None => None,
-        Some(part) => match part.strip_prefix("calibration:").map(str::trim) {
-            Some(file) if !file.is_empty() => Some(ctx.resolve(Path::new(file))),
-            _ => return Err(usage()),
-        },
-    };
-    if parts.next().is_some() {
-        return Err(usage());
+            format!("is a table now, not the string {text:?}: {example}"),
+        ));
     }
+    let section: schema::FieldModelSection = value
+        .clone()
+        .try_into()
+        .map_err(|e| ctx.err(field, format!("{}; {example}", e.message())))?;
+    let path = |p: &PathBuf, key: &str| {
+        if p.as_os_str().is_empty() {
+            Err(ctx.err(format!("{field}.{key}"), "must not be empty"))
+        } else {
+            Ok(ctx.resolve(p))
+        }
+    };
+    let base = match (section.kind.as_str(), &section.dir) {
+        ("analytic", None) => FieldModel::Analytic,
+        ("analytic", Some(_)) => {
+            return Err(ctx.err(
+                format!("{field}.dir"),
+                "belongs to kind = \"maps\" (the analytic model needs no maps)",
+            ))
+        }
+        ("maps", Some(dir)) => FieldModel::Maps(path(dir, "dir")?),
+        ("maps", None) => {
+            return Err(ctx.err(
+                format!("{field}.dir"),
+                "required by kind = \"maps\": the directory of the maps' coils.toml",
+            ))
+        }
+        (other, _) => {
+            return Err(ctx.err(
+                format!("{field}.kind"),
+                format!("must be \"analytic\" or \"maps\", got {other:?}"),
+            ))
+        }
+    };
+    let calibration = section
+        .calibration
+        .as_ref()
+        .map(|c| path(c, "calibration"))
+        .transpose()?;
     Ok((base, calibration))
 }
 
@@ -1013,7 +1035,6 @@ fn build_robot(ctx: &Ctx<'_>, r: &schema::RobotSection) -> Result<RobotParams, R
     };
     robot.validate().map_err(|e| match e {
         RigError::Invalid { field, reason } => ctx.err(field, reason),
-        other => ctx.err("robot", other.to_string()),
     })?;
     Ok(robot)
 }

@@ -8,6 +8,7 @@
 
 mod build;
 mod key_path;
+mod reference;
 mod schema;
 mod zone;
 
@@ -273,7 +274,7 @@ pub struct Rig {
     pub coils: Vec<RigCoil>,
     /// The model control plans with (`electromagnet.field_model`), without its calibration.
     pub field_model: FieldModel,
-    /// The calibration file `field_model` adds (`+ calibration:<file>`), if any.
+    /// The calibration file `field_model` adds (its `calibration`), if any.
     pub field_calibration: Option<PathBuf>,
     /// The model control plans with, calibration applied.
     pub coil_field: RigCoilField,
@@ -287,6 +288,9 @@ pub struct Rig {
     pub driver_supply_v: f64,
     /// Indices (into `coils`) the allocation may drive, in the file's order.
     pub allocation_coils: Vec<usize>,
+    /// Fields the coils are known to make (`electromagnet.reference_fields`), which the coil
+    /// model should reproduce.
+    pub reference_fields: Vec<crate::coils::ReferenceField>,
     pub camera: RigCamera,
     /// The rig's frame source for the camera service (`camera.source`: a V4L2 device, a video
     /// file, ...); a scenario's `[camera] source` overrides it. None: the twin.
@@ -307,17 +311,9 @@ impl Rig {
         Self::parse(&text, path)
     }
 
-    /// [`Self::load`] of the committed paper rig ([`paper_rig_path`]).
+    /// [`Self::load`] of the committed paper rig ([`paper_rig_path`]): the tests' fixture.
     pub fn load_paper() -> Result<Self, RigFileError> {
         Self::load(&paper_rig_path())
-    }
-
-    /// The rig a tool's `--rig` names, else the paper's.
-    pub fn load_or_paper(path: Option<&Path>) -> Result<Self, RigFileError> {
-        match path {
-            Some(path) => Self::load(path),
-            None => Self::load_paper(),
-        }
     }
 
     /// Parses `text` as the rig file at `path` (relative paths resolve against its directory).
@@ -368,6 +364,26 @@ impl Rig {
             ),
             max_total_power_w: self.max_total_power_w,
         }
+    }
+
+    /// The closed-form Biot–Savart model of the coils' windings and turns as the file gives
+    /// them, uncalibrated, whichever model control and the twin use; None when a coil lacks
+    /// `turns` or `[coils.winding]`.
+    pub fn winding_model(&self) -> Option<CoilSystem> {
+        let coils = self
+            .coils
+            .iter()
+            .map(|c| {
+                Some(crate::coils::Coil::from_winding(
+                    c.name.clone(),
+                    c.center_m,
+                    c.axis,
+                    c.winding.as_ref()?,
+                    c.turns?,
+                ))
+            })
+            .collect::<Option<Vec<_>>>()?;
+        Some(CoilSystem { coils })
     }
 
     /// Index of the coil called `name`.

@@ -26,15 +26,49 @@ pub(crate) struct RigFile {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ElectromagnetSection {
-    pub field_model: String,
+    /// A table ([`FieldModelSection`]); read as a value so the retired string form gets a
+    /// message that says what to write instead.
+    pub field_model: toml::Value,
     /// The plant's (truth) field model; defaults to `field_model`.
     #[serde(default)]
-    pub twin_field_model: Option<String>,
+    pub twin_field_model: Option<toml::Value>,
     pub max_total_power_w: f64,
     /// The coil drivers' supply voltage, V (default: the largest I_max · R over the coils).
     #[serde(default)]
     pub driver_supply_v: Option<f64>,
     pub allocation_coils: Vec<String>,
+    /// Fields the coils are known to make (gaussmeter readings, FEA results).
+    #[serde(default)]
+    pub reference_fields: Vec<ReferenceFieldSection>,
+}
+
+/// `{ kind = "analytic" | "maps", dir = "<maps dir>", calibration = "<file>" }`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct FieldModelSection {
+    pub kind: String,
+    #[serde(default)]
+    pub dir: Option<PathBuf>,
+    #[serde(default)]
+    pub calibration: Option<PathBuf>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ReferenceFieldSection {
+    pub source: String,
+    pub coils: Vec<String>,
+    /// Current in each named coil, A (one of this and `power_w`).
+    #[serde(default)]
+    pub current_a: Option<f64>,
+    /// Ohmic power in each named coil, W: the current is sqrt(P / R) of that coil.
+    #[serde(default)]
+    pub power_w: Option<f64>,
+    pub point_mm: [f64; 3],
+    pub direction: [f64; 3],
+    pub field_mt: f64,
+    #[serde(default)]
+    pub gradient_mt_per_cm: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]

@@ -533,8 +533,7 @@ pub fn board_config(
         })
         .collect();
     // `ratings` holds at most MAX_COILS coils, so the block always fits.
-    protocol::BoardConfig::new(to_milli(limits.supply_v), watchdog_ms, &ratings)
-        .unwrap_or_else(|| protocol::BoardConfig::new(12_000, watchdog_ms, &[]).expect("no coils"))
+    protocol::BoardConfig::of_first(to_milli(limits.supply_v), watchdog_ms, &ratings)
 }
 
 /// Reopens a lost link, counts the board's acknowledgements and logs link changes.
@@ -737,7 +736,7 @@ mod tests {
     /// A scenario with `coilbus_table` as its `[coilbus]`.
     fn scenario_with(coilbus_table: &str) -> Scenario {
         let text = format!(
-            "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
+            "[run]\nduration_s = 1.0\nrig = \"fieldmaps/rigs/paper.toml\"\n[fluid]\nviscosity_cp = 20.0\n\
              [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n[coilbus]\n{coilbus_table}\n"
         );
         Scenario::parse(&text, std::path::Path::new("coilbus-test.toml")).unwrap()

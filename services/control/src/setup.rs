@@ -217,7 +217,7 @@ mod tests {
         let dir =
             std::env::temp_dir().join(format!("millinav-control-{}-{name}", std::process::id()));
         let text = format!(
-            "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
+            "[run]\nduration_s = 1.0\nrig = \"fieldmaps/rigs/paper.toml\"\n[fluid]\nviscosity_cp = 20.0\n\
              [trajectory]\nwaypoints_mm = [[-18.0, 12.0], [-12.0, 8.0]]\n\
              [control]\n{control_table}\n"
         );
@@ -338,7 +338,11 @@ mod tests {
         let error = refused("drag", "drag_factor = 0.0");
         assert!(error.contains("[control] drag_factor"), "{error}");
 
-        let error = refused("limits", "[control.limits]\nmax_current_a = 0.0");
+        let error = refused(
+            "limits",
+            "[control.limits]\nmax_current_a = 0.0\nmax_total_power_w = 100.0\n\
+             coil_resistance_ohm = 10.0",
+        );
         assert!(
             error.contains("[control] limits") && error.contains("max_current_a"),
             "{error}"

@@ -46,7 +46,7 @@ fn scenario(controller: &str, waypoints_mm: &[[f64; 2]], speed_mm_s: f64) -> Sce
         .map(|p| format!("[{}, {}]", p[0], p[1]))
         .collect();
     let text = format!(
-        "[run]\nmode = \"lockstep\"\nseed = 1\nduration_s = 100.0\nframe_period_ms = 10.0\n\
+        "[run]\nmode = \"lockstep\"\nseed = 1\nduration_s = 100.0\nframe_period_ms = 10.0\nrig = \"fieldmaps/rigs/paper.toml\"\n\
          [fluid]\nviscosity_cp = 20.0\n\
          [trajectory]\nwaypoints_mm = [{}]\nspeed_mm_s = {speed_mm_s}\nstart_time_s = 1.0\n\
          [control]\ncontroller = \"{controller}\"\n",

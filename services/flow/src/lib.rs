@@ -187,7 +187,7 @@ mod tests {
     fn scenario_with(name: &str, flow_table: &str) -> (Scenario, ScratchDir) {
         let dir = ScratchDir::new(&format!("millinav-flow-{name}")).unwrap();
         let text = format!(
-            "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
+            "[run]\nduration_s = 1.0\nrig = \"fieldmaps/rigs/paper.toml\"\n[fluid]\nviscosity_cp = 20.0\n\
              [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n[flow]\n{flow_table}\n"
         );
         let path = dir.join("scenario.toml");

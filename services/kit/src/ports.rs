@@ -242,7 +242,7 @@ fn open_frame_service(
 
 impl FrameOutbox {
     /// A publisher for frames of up to `max_frame_bytes` pixel bytes (the rig camera's
-    /// width × height × channels; `shm_schemas::FRAME_BYTES` for the paper's camera).
+    /// width × height × channels).
     pub fn new(node: &Node<ipc::Service>, max_frame_bytes: usize) -> Result<Self, KitError> {
         Self::on(node, services::FRAME, max_frame_bytes)
     }

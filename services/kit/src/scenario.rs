@@ -52,9 +52,10 @@ pub struct RunSection {
     /// Camera frame period.
     #[serde(default = "default_frame_period_ms")]
     pub frame_period_ms: f64,
-    /// Rig file the run uses (see [`Scenario::rig_path`]); none means the paper rig.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub rig: Option<PathBuf>,
+    /// Rig file the run uses (see [`Scenario::rig_path`]); required (empty only while
+    /// [`Scenario::parse`] reports it missing).
+    #[serde(default)]
+    pub rig: PathBuf,
 }
 
 fn default_seed() -> u64 {
@@ -141,6 +142,14 @@ impl Scenario {
             }
         }
         let run = &scenario.run;
+        if run.rig.as_os_str().is_empty() {
+            return Err(invalid(
+                "run.rig is missing: a scenario names the rig file it runs on, e.g. \
+                 rig = \"fieldmaps/rigs/paper.toml\" (relative to the repository root or to \
+                 the scenario)"
+                    .into(),
+            ));
+        }
         if !(run.duration_s.is_finite() && run.duration_s > 0.0) {
             return Err(invalid(format!(
                 "run.duration_s must be > 0, got {}",
@@ -213,14 +222,11 @@ impl Scenario {
             .collect()
     }
 
-    /// The rig file this scenario runs on. `[run] rig` when given: absolute as is, else
-    /// relative to the repository root (`fieldmaps::data_root`, like other committed data) when
-    /// it exists there, else relative to the scenario file. Without it, the paper rig
-    /// (`fieldmaps/rigs/paper.toml` under the repository root).
+    /// The rig file this scenario runs on, `[run] rig`: absolute as is, else relative to the
+    /// repository root (`fieldmaps::data_root`, like other committed data) when it exists
+    /// there, else relative to the scenario file.
     pub fn rig_path(&self) -> PathBuf {
-        let Some(rig) = &self.run.rig else {
-            return fieldmaps::rigfile::paper_rig_path();
-        };
+        let rig = &self.run.rig;
         if rig.is_absolute() {
             return rig.clone();
         }
@@ -269,6 +275,7 @@ mod tests {
     const GOOD: &str = r#"
 [run]
 duration_s = 5.0
+rig = "fieldmaps/rigs/paper.toml"
 [fluid]
 viscosity_cp = 20.0
 [trajectory]
@@ -292,9 +299,8 @@ controller = "pid"
     }
 
     #[test]
-    fn rig_defaults_to_the_paper_rig_and_resolves_like_committed_data() {
+    fn a_scenario_names_its_rig_which_resolves_like_committed_data() {
         let s = Scenario::parse(GOOD, Path::new("/somewhere/x.toml")).unwrap();
-        assert_eq!(s.run.rig, None);
         let paper = s.rig_path();
         assert!(
             paper.ends_with("fieldmaps/rigs/paper.toml"),
@@ -303,27 +309,25 @@ controller = "pid"
         );
         assert!(paper.is_file(), "{}", paper.display());
 
-        let named = GOOD.replace(
-            "duration_s = 5.0",
-            "duration_s = 5.0\nrig = \"fieldmaps/rigs/paper.toml\"",
-        );
-        let s = Scenario::parse(&named, Path::new("/somewhere/x.toml")).unwrap();
-        assert_eq!(s.rig_path(), paper);
-
         // Not in the repository: next to the scenario.
         let own = GOOD.replace(
-            "duration_s = 5.0",
-            "duration_s = 5.0\nrig = \"rigs/mine.toml\"",
+            "rig = \"fieldmaps/rigs/paper.toml\"",
+            "rig = \"rigs/mine.toml\"",
         );
         let s = Scenario::parse(&own, Path::new("/somewhere/x.toml")).unwrap();
         assert_eq!(s.rig_path(), Path::new("/somewhere/rigs/mine.toml"));
 
         let absolute = GOOD.replace(
-            "duration_s = 5.0",
-            "duration_s = 5.0\nrig = \"/labs/r.toml\"",
+            "rig = \"fieldmaps/rigs/paper.toml\"",
+            "rig = \"/labs/r.toml\"",
         );
         let s = Scenario::parse(&absolute, Path::new("x.toml")).unwrap();
         assert_eq!(s.rig_path(), Path::new("/labs/r.toml"));
+
+        // None: refused, naming the key, not the paper's rig in silence.
+        let none = GOOD.replace("rig = \"fieldmaps/rigs/paper.toml\"\n", "");
+        let err = Scenario::parse(&none, Path::new("x.toml")).unwrap_err();
+        assert!(err.to_string().contains("run.rig is missing"), "{err}");
     }
 
     #[test]

@@ -108,7 +108,7 @@ fn frames_arrive_with_their_header_and_pixels() {
     let world = Isolated::new();
     let node = world.node();
     let inbox = FrameInbox::new(&node).unwrap();
-    let outbox = FrameOutbox::new(&node, shm_schemas::FRAME_BYTES).unwrap();
+    let outbox = FrameOutbox::new(&node, 1020 * 1020 * 3).unwrap();
     let pixels: Vec<u8> = (0..24).collect();
     outbox.send(header(5), &pixels, |rgb| rgb[0] = 200).unwrap();
     let frame = inbox.latest().unwrap().expect("a frame");

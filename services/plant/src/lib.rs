@@ -942,7 +942,7 @@ mod tests {
     fn scenario_with(name: &str, plant_table: &str, flow_table: &str) -> (Scenario, ScratchDir) {
         let dir = ScratchDir::new(&format!("millinav-plant-{name}")).unwrap();
         let text = format!(
-            "[run]\nduration_s = 1.0\n[fluid]\nviscosity_cp = 20.0\n\
+            "[run]\nduration_s = 1.0\nrig = \"fieldmaps/rigs/paper.toml\"\n[fluid]\nviscosity_cp = 20.0\n\
              [trajectory]\nwaypoints_mm = [[0.0, 0.0], [5.0, 0.0]]\n\
              [plant]\n{plant_table}\n[flow]\n{flow_table}\n"
         );

@@ -4,7 +4,6 @@ use std::time::Instant;
 
 use fieldmaps::mask::CanalMask;
 use fieldmaps::phantom::ImageGeometry;
-use fieldmaps::rig::RobotParams;
 use fieldmaps::rigfile::Rig;
 use millinav_plant::render::{
     blur_rgb, Camera, CameraConfig, CapsulePose, MASK_BODY, MASK_CAP, MASK_MAGNET,
@@ -17,13 +16,18 @@ fn canal() -> CanalMask {
     Rig::load_paper().unwrap().phantom.mask
 }
 
+/// The paper rig's camera view.
+fn view() -> ImageGeometry {
+    Rig::load_paper().unwrap().camera.geometry
+}
+
 fn camera(config: CameraConfig) -> Camera {
     let mut rng = run_rng(7, 1);
-    Camera::with_config(&canal(), ImageGeometry::default(), &mut rng, 3.0, config)
+    Camera::with_config(&canal(), view(), &mut rng, 3.0, config)
 }
 
 fn capsule(x_mm: f64, y_mm: f64, heading: f64) -> CapsulePose {
-    let robot = RobotParams::default();
+    let robot = Rig::load_paper().unwrap().robot;
     CapsulePose {
         position_m: Vector2::new(x_mm, y_mm) * 1e-3,
         heading_rad: heading,
@@ -73,7 +77,7 @@ fn region_blur_equals_whole_frame_blur() {
 fn camera_new_is_unchanged_by_effects() {
     // `Camera::new` keeps the old behaviour: no blur, no drift.
     let mut rng = run_rng(7, 1);
-    let plain = Camera::new(&canal(), ImageGeometry::default(), &mut rng, 3.0);
+    let plain = Camera::new(&canal(), view(), &mut rng, 3.0);
     let with = camera(CameraConfig::off());
     assert_eq!(plain.background(2), with.background(2));
     assert_eq!(plain.frame_background(2), plain.background(2));

@@ -4,7 +4,6 @@
 mod common;
 
 use common::*;
-use fieldmaps::coils::COIL_COUNT;
 use fieldmaps::flowmap::FlowMap;
 use millinav_plant::model::{PlantModel, PlantPhysicsConfig, PlantState};
 use nalgebra::Vector2;
@@ -45,7 +44,7 @@ fn no_motion_without_current_or_flow() {
         let start = m.initial_state(ra_start(), 0.7);
         let mut s = start.clone();
         for _ in 0..500 {
-            m.step(&mut s, &[0.0; COIL_COUNT], FRAME_S);
+            m.step(&mut s, &currents(0.0, 0), FRAME_S);
         }
         assert!((s.time_s - 5.0).abs() < 1e-9);
         assert_eq!(
@@ -105,7 +104,7 @@ fn on_the_floor_the_flow_pushes_with_its_own_factor() {
     let factor = fieldmaps::physics::wall_drag_factor_parallel(gap, m.robot.diameter_m / 2.0);
     let mut s = m.initial_state(ra_start(), 0.0);
     for _ in 0..100 {
-        m.step(&mut s, &[0.0; COIL_COUNT], FRAME_S);
+        m.step(&mut s, &currents(0.0, 0), FRAME_S);
     }
     let expected = 2e-3 * 1.7 / factor;
     assert!(
@@ -210,7 +209,7 @@ fn a_fast_capsule_does_not_tunnel_and_contact_is_reported() {
     let mut s = m.initial_state(ra_start(), std::f64::consts::PI);
     // 50 m/s towards the atrium's left wall (x = −31 mm): 25 mm per 0.5 ms substep.
     s.velocity_mps = Vector2::new(-50.0, 0.0);
-    m.step(&mut s, &[0.0; COIL_COUNT], FRAME_S);
+    m.step(&mut s, &currents(0.0, 0), FRAME_S);
     assert!(s.wall_contact);
     assert_eq!(s.contact_events, 1);
     assert!(s.contact_time_s > 0.0);
@@ -258,7 +257,9 @@ fn run_commands(seed: u64, frames: usize) -> Vec<PlantState> {
     let mut s = m.initial_state(ra_start(), 0.4);
     let mut trace = Vec::with_capacity(frames);
     for _ in 0..frames {
-        let c: [f64; COIL_COUNT] = std::array::from_fn(|_| commands.random_range(-0.2..0.2));
+        let c: Vec<f64> = (0..coil_count())
+            .map(|_| commands.random_range(-0.2..0.2))
+            .collect();
         m.step(&mut s, &c, FRAME_S);
         trace.push(s.clone());
     }
@@ -326,7 +327,7 @@ fn true_flow_is_steady_times_pulsation_plus_disturbances() {
     // Noise is on top, and evolves.
     let mut s = full.initial_state(ra_start(), 0.0);
     let n0 = full.true_flow_with_noise(&q, 0.0, &s.flow_noise) - full.true_flow(&q, 0.0);
-    full.step(&mut s, &[0.0; COIL_COUNT], 0.5);
+    full.step(&mut s, &currents(0.0, 0), 0.5);
     let n1 = full.true_flow_with_noise(&q, 0.0, &s.flow_noise) - full.true_flow(&q, 0.0);
     assert!(n0.norm() > 0.0 && n1.norm() > 0.0 && n0 != n1);
 }
@@ -434,7 +435,7 @@ fn a_cylinder_on_the_floor_drifts_in_the_flow_faster_across_than_along_its_axis(
     let drift = |heading: f64| {
         let mut s = m.initial_state(ra_start(), heading);
         for _ in 0..100 {
-            m.step(&mut s, &[0.0; COIL_COUNT], FRAME_S);
+            m.step(&mut s, &currents(0.0, 0), FRAME_S);
         }
         s.velocity_mps
     };

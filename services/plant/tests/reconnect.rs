@@ -6,17 +6,19 @@ mod common;
 use common::armed_link;
 use std::time::{Duration, Instant};
 
-use fieldmaps::coils::COIL_COUNT;
 use millinav_coilbus::link::SerialLink;
 use millinav_coilbus::protocol::{amps_to_ma, CoilValues, Message};
 use millinav_kit::runlog::{self, TeensyEventRow};
 use millinav_plant::teensy::{EmulatedTeensy, LinkFault};
 
+/// Channels of the emulated board in these tests.
+const CHANNELS: usize = 12;
+
 fn command(frame_seq: u64, amps: f64) -> Message {
     Message::SetCurrents {
         frame_seq,
         flags: 0,
-        currents_ma: CoilValues::new(&[amps_to_ma(amps); COIL_COUNT]).unwrap(),
+        currents_ma: CoilValues::new(&[amps_to_ma(amps); CHANNELS]).unwrap(),
     }
 }
 
@@ -29,7 +31,7 @@ fn deliver(link: &mut SerialLink, teensy: &EmulatedTeensy, frame_seq: u64, amps:
         if link.send(&command(frame_seq, amps)) {
             let (out, in_time) = teensy.wait_for_frame(frame_seq, Duration::from_millis(50));
             if in_time {
-                assert_eq!(out.last_command_currents(), [amps; COIL_COUNT]);
+                assert_eq!(out.last_command_currents(), [amps; CHANNELS]);
                 return true;
             }
         }
@@ -46,8 +48,8 @@ fn serial_link_reconnects_when_the_port_comes_back() {
     let watchdog = Duration::from_millis(250);
 
     let first =
-        EmulatedTeensy::start(&link_path, &dir.join("events1.csv"), watchdog, COIL_COUNT).unwrap();
-    let mut link = armed_link(&link_path, COIL_COUNT, 250);
+        EmulatedTeensy::start(&link_path, &dir.join("events1.csv"), watchdog, CHANNELS).unwrap();
+    let mut link = armed_link(&link_path, CHANNELS, 250);
     assert!(
         deliver(&mut link, &first, 1, 1.5),
         "first port never answered"
@@ -74,7 +76,7 @@ fn serial_link_reconnects_when_the_port_comes_back() {
 
     // A new board at the same path: the link reopens on its own and commands flow again.
     let second =
-        EmulatedTeensy::start(&link_path, &dir.join("events2.csv"), watchdog, COIL_COUNT).unwrap();
+        EmulatedTeensy::start(&link_path, &dir.join("events2.csv"), watchdog, CHANNELS).unwrap();
     assert!(deliver(&mut link, &second, 300, -2.0), "no reconnect");
     assert!(link.is_open());
     assert_eq!(link.reconnects, 1);
@@ -98,8 +100,8 @@ fn an_unplugged_board_holds_its_currents_until_its_watchdog_zeroes_them() {
     let events_path = dir.join("events.csv");
     // Long enough that the checks below never race the watchdog on a loaded machine.
     let watchdog = Duration::from_secs(2);
-    let board = EmulatedTeensy::start(&link_path, &events_path, watchdog, COIL_COUNT).unwrap();
-    let mut link = armed_link(&link_path, COIL_COUNT, watchdog.as_millis() as u16);
+    let board = EmulatedTeensy::start(&link_path, &events_path, watchdog, CHANNELS).unwrap();
+    let mut link = armed_link(&link_path, CHANNELS, watchdog.as_millis() as u16);
     assert!(deliver(&mut link, &board, 1, 1.5), "no first command");
     board.inject(LinkFault::Unplug(Duration::from_secs(3)));
     let until = Instant::now() + Duration::from_secs(1);
@@ -108,13 +110,13 @@ fn an_unplugged_board_holds_its_currents_until_its_watchdog_zeroes_them() {
     }
     assert!(!link_path.exists(), "the device node did not vanish");
     // Cable out, board powered: it still drives the last command...
-    assert_eq!(board.outputs().currents(), [1.5; COIL_COUNT]);
+    assert_eq!(board.outputs().currents(), [1.5; CHANNELS]);
     // ... until its watchdog zeroes it.
     let until = Instant::now() + Duration::from_secs(5);
-    while board.outputs().currents() != [0.0; COIL_COUNT] && Instant::now() < until {
+    while board.outputs().currents() != [0.0; CHANNELS] && Instant::now() < until {
         std::thread::sleep(Duration::from_millis(10));
     }
-    assert_eq!(board.outputs().currents(), [0.0; COIL_COUNT]);
+    assert_eq!(board.outputs().currents(), [0.0; CHANNELS]);
     let events = board_events(&events_path);
     let last_frame = events
         .iter()

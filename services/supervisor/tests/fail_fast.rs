@@ -10,7 +10,7 @@ use std::process::{Command, Output, Stdio};
 const EXIT_CONFIG: i32 = 78;
 
 const SCENARIO: &str =
-    "[run]\nmode = \"lockstep\"\nseed = 1\nduration_s = 1.0\nframe_period_ms = 10.0\n\n\
+    "[run]\nmode = \"lockstep\"\nseed = 1\nduration_s = 1.0\nframe_period_ms = 10.0\nrig = \"fieldmaps/rigs/paper.toml\"\n\n\
 [fluid]\nviscosity_cp = 20.0\n\n\
 [trajectory]\nwaypoints_mm = [[-18.0, 12.0], [-12.0, 8.0]]\nspeed_mm_s = 2.0\nstart_time_s = 0.5\n";
 

@@ -158,17 +158,20 @@ pub struct BoardConfig {
 impl BoardConfig {
     /// `None` when there are more than `MAX_COILS` ratings.
     pub fn new(supply_mv: u32, watchdog_ms: u16, coils: &[CoilRating]) -> Option<Self> {
-        if coils.len() > MAX_COILS {
-            return None;
-        }
+        (coils.len() <= MAX_COILS).then(|| Self::of_first(supply_mv, watchdog_ms, coils))
+    }
+
+    /// The first `MAX_COILS` of `coils` (all of them when they fit).
+    pub fn of_first(supply_mv: u32, watchdog_ms: u16, coils: &[CoilRating]) -> Self {
+        let coils = &coils[..coils.len().min(MAX_COILS)];
         let mut all = [CoilRating::default(); MAX_COILS];
         all[..coils.len()].copy_from_slice(coils);
-        Some(Self {
+        Self {
             supply_mv,
             watchdog_ms,
             coils: all,
             count: coils.len() as u8,
-        })
+        }
     }
 
     pub fn coils(&self) -> &[CoilRating] {

@@ -10,6 +10,7 @@ fn root() -> PathBuf {
 fn vision_eval(args: &[&str]) -> String {
     let out = Command::new(env!("CARGO_BIN_EXE_vision-eval"))
         .current_dir(root())
+        .args(["--rig", "fieldmaps/rigs/paper.toml"])
         .args(args)
         .output()
         .unwrap();

@@ -3,16 +3,20 @@
 //! end-to-end rows, which need processes rather than a closure.
 
 use criterion::{criterion_group, criterion_main, Criterion};
+use millinav_bench::workload::Workload;
 use millinav_bench::{control, vision};
 use millinav_control::controllers::ControllerKind;
 
 fn controllers(c: &mut Criterion) {
+    let Ok(workload) = Workload::short() else {
+        return;
+    };
     for (kind, name) in [
         (ControllerKind::Pid, "pid"),
         (ControllerKind::SmcDob, "smc_dob"),
         (ControllerKind::Mpc, "mpc"),
     ] {
-        if let Ok(mut b) = control::ControllerBench::new(kind) {
+        if let Ok(mut b) = control::ControllerBench::new(kind, &workload) {
             let mut k = 0;
             c.bench_function(&format!("control/{name}/update"), |bench| {
                 bench.iter(|| {
@@ -22,7 +26,7 @@ fn controllers(c: &mut Criterion) {
             });
         }
     }
-    if let Ok(a) = control::AllocationBench::new(64) {
+    if let Ok(a) = control::AllocationBench::new(64, &workload) {
         let mut k = 0;
         c.bench_function("allocation/pinv", |b| {
             b.iter(|| {
@@ -40,7 +44,10 @@ fn controllers(c: &mut Criterion) {
 }
 
 fn localizers(c: &mut Criterion) {
-    let Ok(scene) = vision::Scene::render(0) else {
+    let Ok(workload) = Workload::short() else {
+        return;
+    };
+    let Ok(scene) = vision::Scene::render(0, &workload) else {
         return;
     };
     let classical = vision::classical(&scene);

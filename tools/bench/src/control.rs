@@ -1,8 +1,7 @@
 //! Control workloads: one controller update, one full `ControlLoop::step` (controller +
 //! allocation), and the two allocations on their own.
 
-use std::sync::Arc;
-
+use crate::workload::Workload;
 use fieldmaps::allocation::{
     actuation_matrix_from, allocate_constrained, allocate_pinv, ConstrainedSettings,
 };
@@ -17,39 +16,22 @@ use shm_schemas::{Flag, FrameStamp, Pose};
 
 use crate::BenchError;
 
-/// The short scenario's trajectory (m), speed and start.
-const WAYPOINTS: [[f64; 2]; 3] = [[-0.018, 0.012], [-0.012, 0.008], [-0.010, 0.004]];
-const SPEED_MPS: f64 = 2e-3;
-const START_S: f64 = 0.5;
-const VISCOSITY_PA_S: f64 = 0.02;
-const PERIOD_S: f64 = 0.01;
-
-fn reference() -> Result<Reference, BenchError> {
-    Reference::new(&WAYPOINTS, SPEED_MPS, START_S).map_err(|e| BenchError::Setup(e.to_string()))
-}
-
-/// The committed paper rig the workloads run on.
-pub fn paper_rig() -> Result<Arc<Rig>, BenchError> {
-    Rig::load_paper()
-        .map(Arc::new)
-        .map_err(|e| BenchError::Setup(e.to_string()))
-}
-
-fn model(rig: &Rig) -> NominalModel {
+fn model(rig: &Rig, viscosity_pa_s: f64) -> NominalModel {
     let robot = &rig.robot;
     NominalModel {
         mass_kg: robot.mass_kg,
         linear_drag_n_s_per_m: physics::translational_damping(
-            VISCOSITY_PA_S,
+            viscosity_pa_s,
             robot.length_m,
             robot.diameter_m / 2.0,
         ),
     }
 }
 
-/// Robot position at step `k`: the reference plus a small deterministic tracking error.
-fn position(reference: &Reference, k: usize) -> Vector2<f64> {
-    let t = k as f64 * PERIOD_S;
+/// Robot position at step `k` of `period_s`: the reference plus a small deterministic tracking
+/// error.
+fn position(reference: &Reference, period_s: f64, k: usize) -> Vector2<f64> {
+    let t = k as f64 * period_s;
     let e = 4e-4 * Vector2::new((0.7 * t).sin(), (1.1 * t).cos());
     reference.sample(t).position_m + e
 }
@@ -58,32 +40,35 @@ fn position(reference: &Reference, k: usize) -> Vector2<f64> {
 pub struct ControllerBench {
     pub controller: Box<dyn Controller>,
     reference: Reference,
+    period_s: f64,
 }
 
 impl ControllerBench {
-    pub fn new(kind: ControllerKind) -> Result<Self, BenchError> {
+    pub fn new(kind: ControllerKind, work: &Workload) -> Result<Self, BenchError> {
         let config = ControlConfig {
             controller: kind,
             ..Default::default()
         };
-        let rig = paper_rig()?;
-        let reference = reference()?;
-        let mpc = config.mpc_gains(&rig, reference.waypoints());
+        let reference = work.reference.clone();
+        let mpc = config.mpc_gains(&work.rig, reference.waypoints());
+        let nominal = model(&work.rig, work.viscosity_pa_s);
         Ok(Self {
-            controller: kind.build(&config.pid, &config.smc, &mpc, model(&rig)),
+            controller: kind.build(&config.pid, &config.smc, &mpc, nominal),
             reference,
+            period_s: work.period_s,
         })
     }
 
     pub fn input(&self, k: usize) -> ControlInput {
-        let t = k as f64 * PERIOD_S;
-        let p = position(&self.reference, k);
-        let p_prev = position(&self.reference, k.saturating_sub(1));
+        let dt = self.period_s;
+        let t = k as f64 * dt;
+        let p = position(&self.reference, dt, k);
+        let p_prev = position(&self.reference, dt, k.saturating_sub(1));
         ControlInput {
-            dt_s: PERIOD_S,
+            dt_s: dt,
             delay_s: 0.0,
             position_m: p,
-            velocity_mps: (p - p_prev) / PERIOD_S,
+            velocity_mps: (p - p_prev) / dt,
             reference: self.reference.sample(t),
             flow_mps: Vector2::new(1e-3, -2e-3),
             high_disturbance: false,
@@ -104,24 +89,34 @@ impl ControllerBench {
 pub struct LoopBench {
     pub control: ControlLoop,
     reference: Reference,
+    period_s: f64,
 }
 
 impl LoopBench {
-    pub fn new(kind: ControllerKind) -> Result<Self, BenchError> {
+    pub fn new(kind: ControllerKind, work: &Workload) -> Result<Self, BenchError> {
         let config = ControlConfig {
             controller: kind,
             ..Default::default()
         };
+        let reference = work.reference.clone();
         Ok(Self {
-            control: ControlLoop::new(config, reference()?, VISCOSITY_PA_S, 0, paper_rig()?),
-            reference: reference()?,
+            control: ControlLoop::new(
+                config,
+                reference.clone(),
+                work.viscosity_pa_s,
+                0,
+                work.rig.clone(),
+            ),
+            reference,
+            period_s: work.period_s,
         })
     }
 
     pub fn pose(&self, k: usize) -> Pose {
-        let p = position(&self.reference, k);
+        let p = position(&self.reference, self.period_s, k);
+        let stamp_ns = (k as u64 + 1) * (self.period_s * 1e9) as u64;
         Pose {
-            stamp: FrameStamp::new(k as u64, 0, (k as u64 + 1) * (PERIOD_S * 1e9) as u64),
+            stamp: FrameStamp::new(k as u64, 0, stamp_ns),
             position_m: [p.x, p.y],
             centroid_m: [p.x, p.y],
             heading_rad: 0.6,
@@ -146,9 +141,8 @@ pub struct AllocationBench {
 
 impl AllocationBench {
     /// `n` cases; every fourth asks for a force beyond what the limits allow (best effort).
-    pub fn new(n: usize) -> Result<Self, BenchError> {
-        let reference = reference()?;
-        let rig = paper_rig()?;
+    pub fn new(n: usize, work: &Workload) -> Result<Self, BenchError> {
+        let (reference, rig) = (&work.reference, &work.rig);
         let config = ControlConfig::default();
         let omega0 = config.omega0_n_per_t;
         let h = config.field_heading_deg.to_radians();
@@ -156,7 +150,7 @@ impl AllocationBench {
             Vector2::new(h.cos(), h.sin()) * config.field_magnitude_t(rig.robot.magnet_moment_am2);
         let cases = (0..n)
             .map(|k| {
-                let p = position(&reference, k * 50);
+                let p = position(reference, work.period_s, k * 50);
                 let heading = 0.6 + 0.01 * k as f64;
                 let moment = physics::in_plane_moment(rig.robot.magnet_moment_am2, heading);
                 let a = actuation_matrix_from(
@@ -175,7 +169,7 @@ impl AllocationBench {
             .collect();
         Ok(Self {
             cases,
-            limits: config.limits_on(&rig),
+            limits: config.limits_on(rig),
             settings: ConstrainedSettings::default(),
         })
     }

@@ -60,9 +60,9 @@ impl E2eResult {
     }
 }
 
-/// Writes the real-time variant of `scenarios/short.toml`.
-fn write_scenario(dir: &Path, duration_s: f64) -> Result<(PathBuf, f64), BenchError> {
-    let src = crate::workspace_root().join("scenarios/short.toml");
+/// Writes the real-time variant of the scenario `src` (relative paths from the workspace root).
+fn write_scenario(src: &Path, dir: &Path, duration_s: f64) -> Result<(PathBuf, f64), BenchError> {
+    let src = crate::workspace_root().join(src);
     let text = std::fs::read_to_string(&src)?;
     let mut table: toml::Table = text
         .parse()
@@ -70,7 +70,7 @@ fn write_scenario(dir: &Path, duration_s: f64) -> Result<(PathBuf, f64), BenchEr
     let run = table
         .get_mut("run")
         .and_then(|r| r.as_table_mut())
-        .ok_or_else(|| BenchError::Setup("short.toml has no [run]".into()))?;
+        .ok_or_else(|| BenchError::Setup(format!("{}: no [run]", src.display())))?;
     run.insert("mode".into(), toml::Value::String("realtime".into()));
     run.insert("duration_s".into(), toml::Value::Float(duration_s));
     let period_ms = run
@@ -144,7 +144,12 @@ where
 }
 
 /// Runs the process set for `duration_s` of real time and measures it.
-pub fn run(bin_dir: &Path, dir: &Path, duration_s: f64) -> Result<E2eResult, BenchError> {
+pub fn run(
+    bin_dir: &Path,
+    scenario: &Path,
+    dir: &Path,
+    duration_s: f64,
+) -> Result<E2eResult, BenchError> {
     let supervisor = bin_dir.join("millinav");
     if !supervisor.is_file() {
         return Err(BenchError::Setup(format!(
@@ -152,7 +157,7 @@ pub fn run(bin_dir: &Path, dir: &Path, duration_s: f64) -> Result<E2eResult, Ben
             supervisor.display()
         )));
     }
-    let (scenario, period_s) = write_scenario(dir, duration_s)?;
+    let (scenario, period_s) = write_scenario(scenario, dir, duration_s)?;
     let run_dir = dir.join("run");
     let prefix = format!("benche2e{}_", std::process::id());
     let root = dir.join("e2e-iox");

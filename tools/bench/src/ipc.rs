@@ -15,7 +15,7 @@ use millinav_kit::clock::monotonic_ns;
 use millinav_kit::iceoryx2::prelude::*;
 use millinav_kit::ports::{FrameInbox, FrameOutbox, Inbox, Outbox};
 use millinav_kit::{iceoryx_config, iox};
-use shm_schemas::{Flag, FrameHeader, FrameStamp, Pose, FRAME_BYTES};
+use shm_schemas::{Flag, FrameHeader, FrameStamp, Pose};
 
 use crate::BenchError;
 
@@ -29,9 +29,9 @@ const WARMUP: u64 = 20;
 /// What is sent.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Message {
-    /// 1020x1020x3 frame through the kit's `FrameOutbox::send` (copies the pixels into shm).
+    /// A camera frame through the kit's `FrameOutbox::send` (copies the pixels into shm).
     Frame,
-    /// 1020x1020x3 frame written in place through `FrameOutbox::send_in_place` (zero-copy).
+    /// A camera frame written in place through `FrameOutbox::send_in_place` (zero-copy).
     FrameLoan,
     /// One `Pose` through `Outbox<Pose>`.
     Pose,
@@ -83,20 +83,41 @@ impl Drop for Pinned {
     }
 }
 
-/// Where the two processes meet.
+/// Where the two processes meet, and the frames they pass (the rig camera's size).
 #[derive(Debug, Clone)]
 pub struct Rendezvous {
     pub iox_prefix: String,
     pub iox_root: PathBuf,
     pub socket: PathBuf,
+    pub frame: FrameShape,
+}
+
+/// Width and height of an RGB8 frame, px.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameShape {
+    pub width: u32,
+    pub height: u32,
+}
+
+impl FrameShape {
+    /// Bytes of one frame (3 per pixel).
+    pub fn bytes(self) -> usize {
+        3 * self.width as usize * self.height as usize
+    }
+
+    /// Bytes of one row.
+    fn row_bytes(self) -> usize {
+        3 * self.width as usize
+    }
 }
 
 impl Rendezvous {
-    pub fn new(dir: &Path) -> Self {
+    pub fn new(dir: &Path, frame: FrameShape) -> Self {
         Self {
             iox_prefix: format!("bench{}_", std::process::id()),
             iox_root: dir.join("iox"),
             socket: dir.join("ipc.sock"),
+            frame,
         }
     }
 }
@@ -110,12 +131,12 @@ fn node(rv: &Rendezvous, name: &str) -> Result<Node<ipc::Service>, BenchError> {
         .map_err(iox("node"))?)
 }
 
-fn frame_header(seq: u64, stamp: u64) -> FrameHeader {
+fn frame_header(frame: FrameShape, seq: u64, stamp: u64) -> FrameHeader {
     FrameHeader {
         stamp: FrameStamp::new(seq, 0, stamp),
-        width: shm_schemas::FRAME_WIDTH,
-        height: shm_schemas::FRAME_HEIGHT,
-        stride: shm_schemas::FRAME_WIDTH * 3,
+        width: frame.width,
+        height: frame.height,
+        stride: frame.width * 3,
         ..Default::default()
     }
 }
@@ -128,9 +149,9 @@ fn pose(seq: u64, stamp: u64) -> Pose {
     }
 }
 
-fn payload_len(message: Message) -> usize {
+fn payload_len(frame: FrameShape, message: Message) -> usize {
     match message {
-        Message::Frame | Message::FrameLoan => FRAME_BYTES,
+        Message::Frame | Message::FrameLoan => frame.bytes(),
         Message::Pose => std::mem::size_of::<Pose>(),
     }
 }
@@ -158,10 +179,19 @@ pub fn measure(
     message: Message,
     count: u64,
     pixels: &[u8],
+    frame: FrameShape,
     placement: Placement,
 ) -> Result<Measured, BenchError> {
+    if pixels.len() != frame.bytes() {
+        return Err(setup(&format!(
+            "{} pixel bytes for a {}x{} frame",
+            pixels.len(),
+            frame.width,
+            frame.height
+        )));
+    }
     let _pinned = Pinned::new(placement)?;
-    let rv = Rendezvous::new(dir);
+    let rv = Rendezvous::new(dir, frame);
     let _ = std::fs::remove_file(&rv.socket);
     let listener = match transport {
         Transport::Uds => Some(UnixListener::bind(&rv.socket)?),
@@ -183,7 +213,7 @@ pub fn measure(
     let sent = match transport {
         Transport::Iceoryx2 => send_iceoryx2(&rv, message, count, pixels),
         Transport::Uds => match listener {
-            Some(l) => send_uds(&l, message, count, pixels).map(|()| Vec::new()),
+            Some(l) => send_uds(&l, frame, message, count, pixels).map(|()| Vec::new()),
             None => Err(setup("no socket")),
         },
     };
@@ -282,6 +312,10 @@ fn spawn_child(
         .arg(&rv.iox_root)
         .arg("--socket")
         .arg(&rv.socket)
+        .arg("--frame-width")
+        .arg(rv.frame.width.to_string())
+        .arg("--frame-height")
+        .arg(rv.frame.height.to_string())
         .stdout(Stdio::piped())
         .stdin(Stdio::null())
         .spawn()?)
@@ -297,9 +331,7 @@ fn send_iceoryx2(
     let node = node(rv, "bench-tx")?;
     let acks = Inbox::<Pose>::new(&node, ACK_SERVICE)?;
     let frames = match message {
-        Message::Frame | Message::FrameLoan => {
-            Some(FrameOutbox::new(&node, shm_schemas::FRAME_BYTES)?)
-        }
+        Message::Frame | Message::FrameLoan => Some(FrameOutbox::new(&node, rv.frame.bytes())?),
         _ => None,
     };
     let poses = match message {
@@ -313,11 +345,12 @@ fn send_iceoryx2(
             if message == Message::FrameLoan {
                 // A camera or renderer writes its pixels straight into the loan; here only the
                 // first row is written: the transport cost is what is measured.
-                f.send_in_place(frame_header(seq, stamp), FRAME_BYTES, |payload| {
-                    payload[..3 * 1020].copy_from_slice(&pixels[..3 * 1020]);
+                let (frame, row) = (rv.frame, rv.frame.row_bytes());
+                f.send_in_place(frame_header(frame, seq, stamp), frame.bytes(), |payload| {
+                    payload[..row].copy_from_slice(&pixels[..row]);
                 })?;
             } else {
-                f.send(frame_header(seq, stamp), pixels, |_| {})?;
+                f.send(frame_header(rv.frame, seq, stamp), pixels, |_| {})?;
             }
         }
         if let Some(p) = &poses {
@@ -370,12 +403,13 @@ fn send_iceoryx2(
 
 fn send_uds(
     listener: &UnixListener,
+    frame: FrameShape,
     message: Message,
     count: u64,
     pixels: &[u8],
 ) -> Result<(), BenchError> {
     let (mut stream, _) = listener.accept()?;
-    let len = payload_len(message);
+    let len = payload_len(frame, message);
     let mut buf = vec![0u8; 16 + len];
     buf[16..16 + len.min(pixels.len())].copy_from_slice(&pixels[..len.min(pixels.len())]);
     let mut ack = [0u8; 1];
@@ -399,7 +433,7 @@ pub fn child(rv: &Rendezvous, transport: Transport, message: Message) -> Result<
             let mut stream = UnixStream::connect(&rv.socket)?;
             writeln!(out, "ready")?;
             out.flush()?;
-            let mut buf = vec![0u8; 16 + payload_len(message)];
+            let mut buf = vec![0u8; 16 + payload_len(rv.frame, message)];
             loop {
                 stream.read_exact(&mut buf)?;
                 let now = monotonic_ns();

@@ -6,6 +6,7 @@ pub mod e2e;
 pub mod ipc;
 pub mod stats;
 pub mod vision;
+pub mod workload;
 
 use std::path::PathBuf;
 

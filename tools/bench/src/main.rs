@@ -1,6 +1,7 @@
 //! `bench`: runs the millinav benchmark suite and prints one Markdown table (median and p99 per
 //! measurement, ratios measured in the same run, pass/fail against the project's targets).
 
+use millinav_bench::workload::Workload;
 use std::path::PathBuf;
 
 use anyhow::Context;
@@ -44,6 +45,10 @@ struct Cli {
     /// extrapolating it from one cell.
     #[arg(long, requires = "experiments")]
     experiments_process_matrix: bool,
+    /// The scenario the workloads run on (its rig, trajectory, fluid and frame period); the
+    /// end-to-end rows run its real-time variant. Relative paths from the workspace root.
+    #[arg(long, default_value = "scenarios/short.toml")]
+    scenario: PathBuf,
     /// Directory holding the `millinav` process-set binaries; default: next to this executable.
     #[arg(long)]
     bin_dir: Option<PathBuf>,
@@ -64,6 +69,10 @@ enum Cmd {
         iox_root: PathBuf,
         #[arg(long)]
         socket: PathBuf,
+        #[arg(long)]
+        frame_width: u32,
+        #[arg(long)]
+        frame_height: u32,
     },
 }
 
@@ -75,12 +84,18 @@ fn main() -> anyhow::Result<()> {
         iox_prefix,
         iox_root,
         socket,
+        frame_width,
+        frame_height,
     }) = cli.command
     {
         let rv = ipc::Rendezvous {
             iox_prefix,
             iox_root,
             socket,
+            frame: ipc::FrameShape {
+                width: frame_width,
+                height: frame_height,
+            },
         };
         return Ok(ipc::child(&rv, transport, message)?);
     }
@@ -102,11 +117,12 @@ fn main() -> anyhow::Result<()> {
     };
     let skip = |g: &str| cli.skip.iter().any(|s| s == g);
     let mut rows = Vec::new();
-    let scene = vision::Scene::render(0)?;
+    let workload = millinav_bench::workload::Workload::load(&cli.scenario)?;
+    let scene = vision::Scene::render(0, &workload)?;
 
     if !skip("ipc") {
         eprintln!("ipc ...");
-        rows.extend(ipc_rows(&cli, &exe, &work, &scene.rgb)?);
+        rows.extend(ipc_rows(&cli, &exe, &work, &scene)?);
     }
     if !skip("vision") {
         eprintln!("vision ...");
@@ -114,13 +130,13 @@ fn main() -> anyhow::Result<()> {
     }
     if !skip("control") {
         eprintln!("control ...");
-        rows.extend(control_rows(&cli)?);
+        rows.extend(control_rows(&cli, &workload)?);
     }
     if !skip("e2e") {
         eprintln!("end to end ({} s real time) ...", cli.e2e_seconds);
-        rows.extend(e2e_rows(&bin_dir, &work, cli.e2e_seconds));
+        rows.extend(e2e_rows(&bin_dir, &cli.scenario, &work, cli.e2e_seconds));
     }
-    rows.extend(experiments_rows(&cli, &bin_dir, &work));
+    rows.extend(experiments_rows(&cli, &workload, &bin_dir, &work));
     println!("{}", markdown(&rows));
     if cli.work_dir.is_none() {
         let _ = std::fs::remove_dir_all(&work);
@@ -156,13 +172,18 @@ fn ipc_rows(
     cli: &Cli,
     exe: &std::path::Path,
     work: &std::path::Path,
-    pixels: &[u8],
+    scene: &vision::Scene,
 ) -> anyhow::Result<Vec<Row>> {
     use ipc::{measure, Message, Placement, Transport};
+    let frame = ipc::FrameShape {
+        width: u32::try_from(scene.width)?,
+        height: u32::try_from(scene.height)?,
+    };
+    let mb = format!("{:.1} MB", frame.bytes() as f64 / 1e6);
     let n_frame = cli.frame_iters as u64;
     let n_pose = cli.iters as u64;
     let m = |t, msg, n, placement| {
-        measure(exe, work, t, msg, n, pixels, placement)
+        measure(exe, work, t, msg, n, &scene.rgb, frame, placement)
             .with_context(|| format!("IPC {t:?} {msg:?} {placement:?}"))
     };
     let p99_under = |v: &[f64], ns: f64| Stats::of(v).is_some_and(|s| s.p99_ns < ns);
@@ -196,9 +217,7 @@ fn ipc_rows(
         rows.push(
             Row::time(
                 "IPC",
-                format!(
-                    "{tag}Frame 3.1 MB, iceoryx2 zero-copy (loan, write in place, send){suffix}"
-                ),
+                format!("{tag}Frame {mb}, iceoryx2 zero-copy (loan, write in place, send){suffix}"),
                 Stats::of(&loan.latency_ns),
             )
             .target("p99 < 50 µs", p99_under(&loan.latency_ns, 50e3)),
@@ -207,13 +226,13 @@ fn ipc_rows(
         rows.extend([
             Row::time(
                 "IPC",
-                format!("{tag}Frame 3.1 MB, iceoryx2 kit `FrameOutbox::send` (memcpy into shm)"),
+                format!("{tag}Frame {mb}, iceoryx2 kit `FrameOutbox::send` (memcpy into shm)"),
                 Stats::of(&kit.latency_ns),
             )
             .target("p99 < 50 µs", p99_under(&kit.latency_ns, 50e3)),
             Row::time(
                 "IPC",
-                format!("{tag}Frame 3.1 MB, Unix domain socket (write + read)"),
+                format!("{tag}Frame {mb}, Unix domain socket (write + read)"),
                 Stats::of(&uds),
             ),
             ratio_row(
@@ -339,7 +358,9 @@ fn vision_rows(cli: &Cli, scene: &vision::Scene) -> anyhow::Result<Vec<Row>> {
     rows.push(Row::time(
         "vision",
         format!(
-            "re-acquisition: classical full frame 1020x1020{}",
+            "re-acquisition: classical full frame {}x{}{}",
+            scene.width,
+            scene.height,
             note(found_full)
         ),
         Stats::of(&t_full),
@@ -355,7 +376,7 @@ fn vision_rows(cli: &Cli, scene: &vision::Scene) -> anyhow::Result<Vec<Row>> {
     Ok(rows)
 }
 
-fn control_rows(cli: &Cli) -> anyhow::Result<Vec<Row>> {
+fn control_rows(cli: &Cli, workload: &Workload) -> anyhow::Result<Vec<Row>> {
     let n = cli.iters;
     let mut rows = Vec::new();
     for (kind, name) in [
@@ -363,7 +384,7 @@ fn control_rows(cli: &Cli) -> anyhow::Result<Vec<Row>> {
         (ControllerKind::SmcDob, "SMC-DOB"),
         (ControllerKind::Mpc, "MPC (clarabel QP)"),
     ] {
-        let mut c = control::ControllerBench::new(kind)?;
+        let mut c = control::ControllerBench::new(kind, workload)?;
         let t = time_each(50, n, |k| c.step(k));
         let row = Row::time(
             "control",
@@ -376,7 +397,7 @@ fn control_rows(cli: &Cli) -> anyhow::Result<Vec<Row>> {
         } else {
             row
         });
-        let mut l = control::LoopBench::new(kind)?;
+        let mut l = control::LoopBench::new(kind, workload)?;
         let t = time_each(50, n, |k| l.step(k));
         rows.push(Row::time(
             "control",
@@ -384,7 +405,7 @@ fn control_rows(cli: &Cli) -> anyhow::Result<Vec<Row>> {
             Stats::of(&t),
         ));
     }
-    let a = control::AllocationBench::new(64)?;
+    let a = control::AllocationBench::new(64, workload)?;
     let pinv = time_each(50, n, |k| a.pinv(k));
     let qp = time_each(20, n, |k| a.constrained(k));
     rows.push(Row::time(
@@ -415,8 +436,13 @@ fn control_rows(cli: &Cli) -> anyhow::Result<Vec<Row>> {
     Ok(rows)
 }
 
-fn e2e_rows(bin_dir: &std::path::Path, work: &std::path::Path, seconds: f64) -> Vec<Row> {
-    let r = match e2e::run(bin_dir, work, seconds) {
+fn e2e_rows(
+    bin_dir: &std::path::Path,
+    scenario: &std::path::Path,
+    work: &std::path::Path,
+    seconds: f64,
+) -> Vec<Row> {
+    let r = match e2e::run(bin_dir, scenario, work, seconds) {
         Ok(r) => r,
         Err(e) => {
             return vec![Row::text(
@@ -453,7 +479,12 @@ fn e2e_rows(bin_dir: &std::path::Path, work: &std::path::Path, seconds: f64) -> 
     ]
 }
 
-fn experiments_rows(cli: &Cli, bin_dir: &std::path::Path, work: &std::path::Path) -> Vec<Row> {
+fn experiments_rows(
+    cli: &Cli,
+    workload: &Workload,
+    bin_dir: &std::path::Path,
+    work: &std::path::Path,
+) -> Vec<Row> {
     let exe = bin_dir.join("experiments");
     if !cli.experiments || !exe.is_file() {
         let why = if exe.is_file() {
@@ -469,10 +500,7 @@ fn experiments_rows(cli: &Cli, bin_dir: &std::path::Path, work: &std::path::Path
     }
     // The README's matrix commands (10 Hz and 100 Hz), and through the process set one
     // full-length cell of each, or the whole 10 Hz matrix.
-    let cells = match control::paper_rig() {
-        Ok(rig) => millinav_experiments::rig_matrix(&rig, 3, true).len(),
-        Err(e) => return vec![Row::text("experiments", "paper rig", e.to_string())],
-    };
+    let cells = millinav_experiments::rig_matrix(&workload.rig, 3, true).len();
     let run = |label: &str, args: &[&str]| -> Result<f64, String> {
         let t = std::time::Instant::now();
         let status = std::process::Command::new(&exe)

@@ -1,11 +1,10 @@
-//! Vision workloads on a frame rendered by the twin's camera (1020x1020, capsule in the canal).
+//! Vision workloads on a frame rendered by the twin's camera of the rig (capsule in the canal).
 
 use std::path::PathBuf;
 
 use millinav_plant::render::{Camera, CameraConfig, CapsulePose};
 use millinav_vision::classical::{CapsuleSize, ClassicalLocalizer, SearchRect};
 use millinav_vision::unet::{find_onnxruntime, UnetLocalizer};
-use nalgebra::Vector2;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -25,9 +24,9 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// Frame `seq` of the paper rig's camera with the capsule at the short scenario's start.
-    pub fn render(seq: u64) -> Result<Self, BenchError> {
-        let rig = crate::control::paper_rig()?;
+    /// Frame `seq` of the workload rig's camera with the capsule at its trajectory's start.
+    pub fn render(seq: u64, work: &crate::workload::Workload) -> Result<Self, BenchError> {
+        let rig = &work.rig;
         let geometry = rig.camera.geometry;
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         let camera = Camera::with_config(
@@ -38,7 +37,7 @@ impl Scene {
             CameraConfig::default(),
         );
         let robot = &rig.robot;
-        let position = Vector2::new(-0.018, 0.012);
+        let position = work.reference.sample(0.0).position_m;
         let capsule = CapsulePose {
             position_m: position,
             heading_rad: 0.6,

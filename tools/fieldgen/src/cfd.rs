@@ -1128,8 +1128,8 @@ pub fn write_speed_png(map: &FlowMap, max_mps: f64, path: &Path) -> anyhow::Resu
 #[derive(Debug, clap::Args)]
 pub struct CfdArgs {
     /// Rig file: the canal mask, the ports (`[[phantom.inlets]]`, `[[phantom.outlets]]`), the
-    /// zones and the flow conditions (`[[phantom.flow]]`). Default: the paper's rig.
-    #[arg(long, default_value_os_t = fieldmaps::rigfile::paper_rig_path())]
+    /// zones and the flow conditions (`[[phantom.flow]]`), e.g. fieldmaps/rigs/paper.toml.
+    #[arg(long)]
     pub rig: PathBuf,
     /// Solve every `[[phantom.flow]]` condition of the rig and write each to its `map` path
     /// (or into --out-dir under the same file name).

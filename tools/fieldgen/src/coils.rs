@@ -1,23 +1,19 @@
-//! `fieldgen coils`: calibrate the 12-coil Biot–Savart model to the paper's FEA case, sample
-//! current-normalized field maps B̃_i, ∇B̃_i on a 3D grid over the workspace, write them in the
-//! format of `fieldmaps/coils/FORMAT.md`, verify the interpolated maps against the direct model,
-//! and cross-check the direct model against magpylib.
+//! `fieldgen coils`: sample a rig's Biot–Savart coil model as current-normalized field maps
+//! B̃_i, ∇B̃_i on a 3D grid over the workspace, write them in the format of
+//! `fieldmaps/coils/FORMAT.md`, compare model and maps with the rig's reference fields, verify
+//! the interpolated maps against the direct model, and cross-check the direct model against
+//! magpylib.
 //!
-//! `fieldgen coils --check` prints every number of the README section (calibration, interpolation
-//! error of the committed maps, magpylib max relative error) without rewriting anything.
+//! `fieldgen coils --check` prints those numbers for the existing maps without rewriting them.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use anyhow::{bail, Context};
-use fieldmaps::coils::{
-    calibrate_paper_rig, Coil, CoilField, CoilSystem, PaperRigLayout, PAPER_CALIBRATION_COILS,
-    PAPER_CALIBRATION_POWER_W, PAPER_GRADIENT_T_PER_M, PAPER_PEAK_FIELD_T,
-};
+use fieldmaps::coils::{CoilField, CoilSystem, FieldReading, ReferenceField};
 use fieldmaps::fieldmap::{sample_coil, CoilFieldMaps, CoilInfo, GridSpec, Interpolation};
-use fieldmaps::rig::CoilLimits;
-use fieldmaps::rigfile::{FieldModel, Rig, RigCoilField};
+use fieldmaps::rigfile::{FieldModel, Rig};
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -52,11 +48,12 @@ impl MapGridArgs {
 /// Arguments of `fieldgen coils`.
 #[derive(Debug, clap::Args)]
 pub struct CoilsArgs {
-    /// Rig file whose coils to model (their windings and turns). Default: the paper's rig.
-    #[arg(long, default_value_os_t = fieldmaps::rigfile::paper_rig_path())]
+    /// Rig file whose coils to model (their windings and turns), e.g.
+    /// fieldmaps/rigs/paper.toml.
+    #[arg(long)]
     pub rig: PathBuf,
-    /// Map directory to write (or, with --check, to verify). Default: the rig's `maps:`
-    /// directory (`twin_field_model`, else `field_model`; fieldmaps/coils for the paper's rig).
+    /// Map directory to write (or, with --check, to verify). Default: the `dir` of the rig's
+    /// field model of kind "maps" (`twin_field_model`, else `field_model`).
     #[arg(long)]
     pub out: Option<PathBuf>,
     #[command(flatten)]
@@ -92,33 +89,14 @@ pub struct CoilsArgs {
     pub python: Option<PathBuf>,
 }
 
-/// The closed-form model of a rig's coils: the rig's analytic model when it has one, else
-/// built from the windings and turns the file gives (informational with `maps:`).
+/// The closed-form model of a rig's coils, from the windings and turns the file gives.
 pub fn rig_system(rig: &Rig) -> anyhow::Result<CoilSystem> {
-    for field in [&rig.coil_field, &rig.twin_coil_field] {
-        if let RigCoilField::Analytic(system) = field {
-            return Ok(system.clone());
-        }
-    }
-    let coils = rig
-        .coils
-        .iter()
-        .enumerate()
-        .map(|(i, c)| match (&c.winding, c.turns) {
-            (Some(w), Some(turns)) => Ok(Coil::from_winding(
-                c.name.clone(),
-                c.center_m,
-                c.axis,
-                w,
-                turns,
-            )),
-            _ => Err(anyhow::anyhow!(
-                "{}: coils[{i}]: fieldgen coils needs `turns` and [coils.winding] to model this coil",
-                rig.path.display()
-            )),
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    Ok(CoilSystem { coils })
+    rig.winding_model().ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: [[coils]]: fieldgen coils needs `turns` and [coils.winding] on every coil to model it",
+            rig.path.display()
+        )
+    })
 }
 
 /// Where the rig keeps its coil maps, if it uses any (the twin's first).
@@ -129,15 +107,6 @@ fn rig_maps_dir(rig: &Rig) -> Option<PathBuf> {
             FieldModel::Maps(dir) => Some(dir.clone()),
             FieldModel::Analytic => None,
         })
-}
-
-/// Whether the rig has the paper's FEA calibration case (its N_small and N_large coils, in
-/// the paper's order): only then is that case reported.
-fn has_paper_case(system: &CoilSystem) -> bool {
-    PAPER_CALIBRATION_COILS
-        .iter()
-        .zip(["N_small", "N_large"])
-        .all(|(&i, name)| system.coils.get(i).is_some_and(|c| c.name == name))
 }
 
 pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
@@ -168,18 +137,12 @@ pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
         return Ok(());
     }
 
-    let paper_case = has_paper_case(&system);
-    let calibration = if paper_case {
-        Some(report_calibration(&system)?)
-    } else {
-        println!("calibration: none (the rig has not the paper's FEA case; the field is the windings' Biot–Savart as given)");
-        None
-    };
+    let provenance = report_reference_fields(&rig, &system)?;
     let dir = match (&args.out, rig_maps_dir(&rig)) {
         (Some(out), _) => out.clone(),
         (None, Some(dir)) => dir,
         (None, None) => bail!(
-            "{}: electromagnet: the rig uses no maps: directory; give --out",
+            "{}: electromagnet: no field model of kind \"maps\" names a directory; give --out",
             args.rig.display()
         ),
     };
@@ -190,19 +153,13 @@ pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
             "fieldgen coils --spacing-mm {} --half-xy-mm {} --half-z-mm {}",
             args.grid.spacing_mm, args.grid.half_xy_mm, args.grid.half_z_mm
         );
-        let description = if paper_case {
-            "Current-normalized field and gradient of the 12 paper-rig coils (closed-form \
-             Biot-Savart, calibrated to the paper's FEA case); see FORMAT.md"
-                .to_string()
-        } else {
-            format!(
-                "Current-normalized field and gradient of the {} coils of rig {} (closed-form \
-                 Biot-Savart of their windings); see FORMAT.md",
-                system.len(),
-                rig.name
-            )
-        };
-        maps.write(&dir, &description, &command, calibration)?;
+        let description = format!(
+            "Current-normalized field and gradient of the {} coils of rig {} (closed-form \
+             Biot-Savart of their windings); see FORMAT.md",
+            system.len(),
+            rig.name
+        );
+        maps.write(&dir, &description, &command, provenance)?;
         let bytes: u64 = std::fs::read_dir(&dir)?
             .filter_map(|e| e.ok()?.metadata().ok())
             .map(|m| m.len())
@@ -228,9 +185,7 @@ pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
         g.origin_m[2] * 1e3,
         g.max_m()[2] * 1e3,
     );
-    if paper_case {
-        report_map_calibration(&maps)?;
-    }
+    report_map_reference_fields(&rig, &maps);
     println!(
         "interpolation error vs direct Biot–Savart at {} random points in the grid box, all {} coils \
          (relative: |ΔB̃|/|B̃| and ‖Δ∇B̃‖_F/‖∇B̃‖_F):",
@@ -262,90 +217,114 @@ pub fn run(args: &CoilsArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Print the calibration and return it as manifest provenance.
-fn report_calibration(system: &CoilSystem) -> anyhow::Result<toml::Table> {
-    let layout = PaperRigLayout::default();
-    let limits = CoilLimits::default();
-    let fit = calibrate_paper_rig(&layout, &limits)?;
-    let current = limits.current_for_power(PAPER_CALIBRATION_POWER_W)?;
-    let p = layout.calibration_point();
-    let m = fieldmaps::coils::Calibration::measure(
-        system,
-        &PAPER_CALIBRATION_COILS,
-        current,
-        &p,
-        &nalgebra::Unit::new_unchecked(Vector3::y()),
-    )?;
-    let turns: Vec<f64> = system.coils[..3].iter().map(|c| c.total_turns()).collect();
-    println!("calibration (paper FEA case: N_small + N_large at {PAPER_CALIBRATION_POWER_W} W each = {current:.3} A, R = {} Ω):", limits.coil_resistance_ohm);
+/// Print how the direct model meets each of the rig's reference fields and return the
+/// comparison as manifest provenance (None when the rig gives none).
+fn report_reference_fields(rig: &Rig, system: &CoilSystem) -> anyhow::Result<Option<toml::Table>> {
+    if rig.reference_fields.is_empty() {
+        println!(
+            "reference fields: none in {} (the maps are the windings' Biot–Savart as given)",
+            rig.path.display()
+        );
+        return Ok(None);
+    }
     println!(
-        "  fitted turns (small, mid, large): {:.3}, {:.3}, {:.3}; rig uses {:.3}, {:.3}, {:.3}",
-        fit.turns[0], fit.turns[1], fit.turns[2], turns[0], turns[1], turns[2]
+        "reference fields of {} vs the direct model:",
+        rig.path.display()
     );
-    println!(
-        "  measured at ({:.1}, {:.1}, {:.1}) mm (north axis, workspace face, control plane), along +y:",
-        p.x * 1e3,
-        p.y * 1e3,
-        p.z * 1e3
-    );
-    println!(
-        "  peak field {:.3} mT (paper 24.05 mT, {:+.3}%), gradient {:.3} mT/cm (paper 13.92 mT/cm, {:+.3}%)",
-        m.peak_field_t * 1e3,
-        (m.peak_field_t / PAPER_PEAK_FIELD_T - 1.0) * 100.0,
-        m.gradient_t_per_m * 10.0,
-        (m.gradient_t_per_m / PAPER_GRADIENT_T_PER_M - 1.0) * 100.0,
-    );
-    let mut t = toml::Table::new();
-    t.insert(
-        "turns_small_mid_large".into(),
-        toml::Value::try_from(turns)?,
-    );
-    t.insert("current_a".into(), current.into());
-    t.insert(
-        "coils".into(),
-        toml::Value::try_from(vec!["N_small", "N_large"])?,
-    );
-    t.insert("point_m".into(), toml::Value::try_from([p.x, p.y, p.z])?);
-    t.insert("peak_field_mT".into(), (m.peak_field_t * 1e3).into());
-    t.insert(
-        "gradient_mT_per_cm".into(),
-        (m.gradient_t_per_m * 10.0).into(),
-    );
-    t.insert(
-        "paper_peak_field_mT".into(),
-        (PAPER_PEAK_FIELD_T * 1e3).into(),
-    );
-    t.insert(
-        "paper_gradient_mT_per_cm".into(),
-        (PAPER_GRADIENT_T_PER_M * 10.0).into(),
-    );
-    Ok(t)
+    let mut entries = Vec::new();
+    for (k, reference) in rig.reference_fields.iter().enumerate() {
+        let read = reference.measure(system);
+        print_reference(k, rig, reference, &read);
+        let mut t = toml::Table::new();
+        t.insert("source".into(), reference.source.clone().into());
+        let names: Vec<&str> = reference
+            .currents_a
+            .iter()
+            .map(|&(i, _)| rig.coils[i].name.as_str())
+            .collect();
+        t.insert("coils".into(), toml::Value::try_from(names)?);
+        let amps: Vec<f64> = reference.currents_a.iter().map(|&(_, a)| a).collect();
+        t.insert("currents_a".into(), toml::Value::try_from(amps)?);
+        let p = reference.point_m * 1e3;
+        t.insert("point_mm".into(), toml::Value::try_from([p.x, p.y, p.z])?);
+        t.insert(
+            "reference_field_mt".into(),
+            (reference.field_t * 1e3).into(),
+        );
+        t.insert("model_field_mt".into(), (read.field_t * 1e3).into());
+        if let Some(g) = reference.gradient_t_per_m {
+            t.insert("reference_gradient_mt_per_cm".into(), (g * 10.0).into());
+            t.insert(
+                "model_gradient_mt_per_cm".into(),
+                (read.gradient_t_per_m * 10.0).into(),
+            );
+        }
+        entries.push(toml::Value::Table(t));
+    }
+    let mut provenance = toml::Table::new();
+    provenance.insert("reference_fields".into(), toml::Value::Array(entries));
+    Ok(Some(provenance))
 }
 
-/// The paper FEA case measured on the interpolated maps (if they cover the point).
-fn report_map_calibration(maps: &CoilFieldMaps) -> anyhow::Result<()> {
-    let p = PaperRigLayout::default().calibration_point();
-    let current = CoilLimits::default().current_for_power(PAPER_CALIBRATION_POWER_W)?;
-    let mut b = Vector3::zeros();
-    let mut g = Matrix3::zeros();
-    for name in ["N_small", "N_large"] {
-        let Some(i) = maps.coil_index(name) else {
-            bail!("maps have no coil named {name}");
-        };
-        let Ok((bi, gi)) = maps.try_field_and_gradient_per_amp(i, &p) else {
-            println!("  (maps do not cover the calibration point)");
-            return Ok(());
-        };
-        b += bi * current;
-        g += gi * current;
-    }
-    let grad = b.normalize().dot(&(g * Vector3::y()));
+/// One line per reference: what the model gives, what the reference says, the relative error.
+fn print_reference(k: usize, rig: &Rig, reference: &ReferenceField, read: &FieldReading) {
+    let drive: Vec<String> = reference
+        .currents_a
+        .iter()
+        .map(|&(i, a)| format!("{} {a:.3} A", rig.coils[i].name))
+        .collect();
+    let p = reference.point_m * 1e3;
     println!(
-        "  same case on the interpolated maps: {:.3} mT, {:.3} mT/cm",
-        b.norm() * 1e3,
-        grad * 10.0
+        "  [{k}] {} ({}) at ({:.1}, {:.1}, {:.1}) mm:",
+        reference.source,
+        drive.join(", "),
+        p.x,
+        p.y,
+        p.z
     );
-    Ok(())
+    let pct = |model: f64, expected: f64| (model / expected - 1.0) * 100.0;
+    let mut line = format!(
+        "      |B| {:.3} mT (reference {:.3} mT, {:+.3} %)",
+        read.field_t * 1e3,
+        reference.field_t * 1e3,
+        pct(read.field_t, reference.field_t)
+    );
+    if let Some(g) = reference.gradient_t_per_m {
+        line += &format!(
+            ", gradient {:.3} mT/cm (reference {:.3} mT/cm, {:+.3} %)",
+            read.gradient_t_per_m * 10.0,
+            g * 10.0,
+            pct(read.gradient_t_per_m, g)
+        );
+    }
+    println!("{line}");
+}
+
+/// The reference fields measured on the interpolated maps (where the maps cover the point).
+fn report_map_reference_fields(rig: &Rig, maps: &CoilFieldMaps) {
+    for (k, reference) in rig.reference_fields.iter().enumerate() {
+        let mut b = Vector3::zeros();
+        let mut g = Matrix3::zeros();
+        for &(i, amps) in &reference.currents_a {
+            let name = &rig.coils[i].name;
+            let Some(m) = maps.coil_index(name) else {
+                println!("  [{k}] on the maps: they have no coil named {name}");
+                return;
+            };
+            let Ok((bi, gi)) = maps.try_field_and_gradient_per_amp(m, &reference.point_m) else {
+                println!("  [{k}] on the maps: they do not cover the point");
+                return;
+            };
+            b += bi * amps;
+            g += gi * amps;
+        }
+        let read = reference.reading(&b, &g);
+        println!(
+            "  [{k}] on the interpolated maps: |B| {:.3} mT, gradient {:.3} mT/cm",
+            read.field_t * 1e3,
+            read.gradient_t_per_m * 10.0
+        );
+    }
 }
 
 /// Sample all coils on `grid` with `threads` workers and a progress bar.
@@ -617,6 +596,8 @@ fn run_magpylib_check(args: &CoilsArgs) -> anyhow::Result<()> {
         .arg(magpylib_script())
         .arg("--fieldgen")
         .arg(exe)
+        .arg("--rig")
+        .arg(&args.rig)
         .status()
         .with_context(|| format!("running {}", python.display()))?;
     if !status.success() {

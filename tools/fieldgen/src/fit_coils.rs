@@ -926,12 +926,14 @@ pub fn run(args: &FitCoilsArgs) -> anyhow::Result<()> {
     cal.write(&args.out, Some(report))?;
     println!("wrote {}", args.out.display());
     let base_text = match &rig.field_model {
-        fieldmaps::rigfile::FieldModel::Analytic => "analytic".to_string(),
-        fieldmaps::rigfile::FieldModel::Maps(dir) => format!("maps:{}", dir.display()),
+        fieldmaps::rigfile::FieldModel::Analytic => "kind = \"analytic\"".to_string(),
+        fieldmaps::rigfile::FieldModel::Maps(dir) => {
+            format!("kind = \"maps\", dir = \"{}\"", dir.display())
+        }
     };
     println!(
-        "use it: in {}, [electromagnet] field_model = \"{base_text} + calibration:{}\" (paths \
-         relative to the rig file)",
+        "use it: in {}, [electromagnet] field_model = {{ {base_text}, calibration = \"{}\" }} \
+         (paths relative to the rig file)",
         rig.path.display(),
         args.out.display()
     );

@@ -541,8 +541,8 @@ pub fn resample(
 pub struct ImportArgs {
     /// The export file (Fluent ASCII/CSV or OpenFOAM raw/CSV).
     pub input: PathBuf,
-    /// Rig file: the camera view the map covers and the canal mask. Default: the paper's rig.
-    #[arg(long, default_value_os_t = fieldmaps::rigfile::paper_rig_path())]
+    /// Rig file: the camera view the map covers and the canal mask.
+    #[arg(long)]
     pub rig: PathBuf,
     /// Output flow map (.flow.csv).
     #[arg(long)]

@@ -14,10 +14,10 @@ pub struct RigCheckArgs {
     pub rig: PathBuf,
     /// Orientation-field magnitudes (mT) at which to report the guaranteed force, after the
     /// field services/control holds by default on this rig (the paper's aligning torque, 0.86
-    /// µN·m, over the rig's magnet moment: 1 mT on the paper's rig); empty (`--field-mt=`)
-    /// skips the budget.
-    #[arg(long, value_delimiter = ',', default_values_t = [1.0, 5.0, 10.0])]
-    pub field_mt: Vec<f64>,
+    /// µN·m, over the rig's magnet moment: 1 mT on the paper's rig), comma-separated; empty
+    /// (`--field-mt=`) skips the budget.
+    #[arg(long, value_parser = parse_fields_mt, default_value = "1,5,10")]
+    pub field_mt: FieldsMt,
     /// Control's ω0 (N/T): weight of the field rows in the pseudo-inverse allocation
     /// (services/control `omega0_n_per_t`).
     #[arg(long, default_value_t = 0.05)]
@@ -28,6 +28,22 @@ pub struct RigCheckArgs {
     /// Fail unless the guaranteed force at every route point and field is at least this, mN.
     #[arg(long)]
     pub min_force_mn: Option<f64>,
+}
+
+/// Field magnitudes, mT, from a comma-separated list ("" for none).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FieldsMt(pub Vec<f64>);
+
+fn parse_fields_mt(text: &str) -> Result<FieldsMt, String> {
+    text.split(',')
+        .map(str::trim)
+        .filter(|t| !t.is_empty())
+        .map(|t| match t.parse::<f64>() {
+            Ok(mt) if mt.is_finite() && mt >= 0.0 => Ok(mt),
+            _ => Err(format!("{t:?} is not a field magnitude ≥ 0 (mT)")),
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map(FieldsMt)
 }
 
 /// Force directions and field headings tried at each point.
@@ -163,17 +179,10 @@ pub fn run(args: &RigCheckArgs) -> anyhow::Result<()> {
         anyhow::bail!("--spacing-mm must be > 0");
     }
     let mut weakest_route = f64::INFINITY;
-    if let Some(bad) = args
-        .field_mt
-        .iter()
-        .find(|mt| !(mt.is_finite() && **mt >= 0.0))
-    {
-        anyhow::bail!("--field-mt: {bad} is not a field magnitude ≥ 0");
-    }
     // Control's default field on this rig first, unless it is one of those asked for.
     let default_mt =
         fieldmaps::physics::DEFAULT_ALIGNING_TORQUE_N_M / rig.robot.magnet_moment_am2 * 1e3;
-    let mut fields_mt = args.field_mt.clone();
+    let mut fields_mt = args.field_mt.0.clone();
     if !fields_mt.is_empty() && !fields_mt.iter().any(|mt| (mt - default_mt).abs() < 1e-9) {
         fields_mt.insert(0, default_mt);
     }

@@ -8,7 +8,7 @@ use fieldgen::cfd::{
 };
 use fieldgen::validate;
 use fieldmaps::mask::CanalMask;
-use fieldmaps::phantom::{ImageGeometry, Phantom};
+use fieldmaps::phantom::Phantom;
 use fieldmaps::rigfile::Rig;
 
 #[test]
@@ -225,8 +225,15 @@ fn committed_flow_maps_load_with_paper_peaks() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fieldmaps/flow");
     // The committed maps were solved on the parametric phantom (their `domain` header), which
     // the paper rig's mask rasterises.
-    let mask =
-        CanalMask::from_phantom(&Phantom::default_heart(), &ImageGeometry::default()).unwrap();
+    let mask = CanalMask::from_phantom(
+        &Phantom::load(&fieldmaps::data_root().join("fieldmaps/rigs/paper/heart_phantom.toml"))
+            .unwrap(),
+        &fieldmaps::rigfile::Rig::load_paper()
+            .unwrap()
+            .camera
+            .geometry,
+    )
+    .unwrap();
     assert_eq!(
         mask.canal_flags(),
         Rig::load(&rig_file("paper"))

@@ -132,9 +132,17 @@ fn clear_errors_on_bad_exports() {
 #[test]
 fn mask_zeroes_the_wall() {
     use fieldmaps::mask::CanalMask;
-    use fieldmaps::phantom::{ImageGeometry, Phantom};
-    let geom = ImageGeometry::default();
-    let mask = CanalMask::from_phantom(&Phantom::default_heart(), &geom).unwrap();
+    use fieldmaps::phantom::Phantom;
+    let geom = fieldmaps::rigfile::Rig::load_paper()
+        .unwrap()
+        .camera
+        .geometry;
+    let mask = CanalMask::from_phantom(
+        &Phantom::load(&fieldmaps::data_root().join("fieldmaps/rigs/paper/heart_phantom.toml"))
+            .unwrap(),
+        &geom,
+    )
+    .unwrap();
     let g = GridSpec::view(&geom, 1e-3);
     let (map, stats, _) = import_file(
         &data("openfoam_plane.csv"),

@@ -32,6 +32,8 @@ fn direct_model_matches_magpylib() {
             "--points",
             "300",
         ])
+        .arg("--rig")
+        .arg(fieldmaps::rigfile::paper_rig_path())
         .output()
         .expect("running magpylib_check.py");
     let stdout = String::from_utf8_lossy(&out.stdout);
@@ -52,7 +54,9 @@ fn export_and_probe_reject_bad_input() {
     let points = dir.join("points.json");
     std::fs::write(&points, "{\"points\": 3}").unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_fieldgen"))
-        .args(["coils", "--probe"])
+        .args(["coils", "--rig"])
+        .arg(fieldmaps::rigfile::paper_rig_path())
+        .arg("--probe")
         .arg(&points)
         .arg("--probe-out")
         .arg(dir.join("out.json"))

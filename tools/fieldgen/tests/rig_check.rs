@@ -95,3 +95,31 @@ fn vessel8_rig_checks_out_with_its_force_budget() {
         ],
     );
 }
+
+#[test]
+fn an_empty_field_list_skips_the_force_budget_and_a_bad_one_is_named() {
+    let rig = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fieldmaps/rigs/paper.toml");
+    let run = |field: &str| {
+        Command::new(env!("CARGO_BIN_EXE_fieldgen"))
+            .args(["rig-check", field, "--rig"])
+            .arg(&rig)
+            .output()
+            .unwrap()
+    };
+    let out = run("--field-mt=");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("rig ok"), "{stdout}");
+    assert!(!stdout.contains("force budget"), "{stdout}");
+    let out = run("--field-mt=1,x");
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("\"x\" is not a field magnitude"),
+        "{stderr}"
+    );
+}

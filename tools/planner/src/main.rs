@@ -19,9 +19,9 @@ use nalgebra::Vector2;
 #[derive(Parser, Debug)]
 #[command(about = "A* path planner (paper Sec. II-C): canal mask -> trajectory waypoints")]
 struct Args {
-    /// Rig file: canal mask, its geometry, default start and goal (`[phantom.route]`).
-    /// Default: the paper's rig.
-    #[arg(long, default_value_os_t = fieldmaps::rigfile::paper_rig_path())]
+    /// Rig file: canal mask, its geometry, default start and goal (`[phantom.route]`), e.g.
+    /// fieldmaps/rigs/paper.toml.
+    #[arg(long)]
     rig: PathBuf,
     /// Canal mask image (white = canal) instead of the rig's. Same size as the rig's mask: the
     /// rig's geometry; otherwise centred on the origin at --mm-per-px.
@@ -144,9 +144,8 @@ fn main() -> anyhow::Result<()> {
         Some(path) => {
             let template = std::fs::read_to_string(path)
                 .with_context(|| format!("reading scenario template {}", path.display()))?;
-            // A rig other than the default is named in the scenario's `[run] rig`.
-            let rig = (args.rig != fieldmaps::rigfile::paper_rig_path()).then_some(&*args.rig);
-            scenario_with_plan(&template, &plan, args.speed_mm_s, rig)?
+            // The plan is on this rig's phantom: the scenario's `[run] rig` names it.
+            scenario_with_plan(&template, &plan, args.speed_mm_s, Some(&*args.rig))?
         }
         None => format!(
             "# millinav-planner: A* on the canal mask, {:.1} mm clearance, w_clear {}, window {},\n\

@@ -120,8 +120,13 @@ fn astar_cost_is_optimal_on_small_grids() {
 
 #[test]
 fn default_phantom_plan() {
-    let phantom = Phantom::default_heart();
-    let geom = ImageGeometry::default();
+    let phantom =
+        Phantom::load(&fieldmaps::data_root().join("fieldmaps/rigs/paper/heart_phantom.toml"))
+            .unwrap();
+    let geom = fieldmaps::rigfile::Rig::load_paper()
+        .unwrap()
+        .camera
+        .geometry;
     let mask = Mask::from_phantom(&phantom, &geom).unwrap();
     let config = PlannerConfig::default();
     let p = plan(

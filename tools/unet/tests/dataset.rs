@@ -15,8 +15,14 @@ fn temp_dir(name: &str) -> PathBuf {
     dir
 }
 
+/// Runs `bin` (unet-dataset or unet-import) on the paper's rig with `args`.
 fn run(bin: &str, args: &[&str]) -> (bool, String) {
-    let out = Command::new(bin).args(args).output().unwrap();
+    let out = Command::new(bin)
+        .arg("--rig")
+        .arg(fieldmaps::rigfile::paper_rig_path())
+        .args(args)
+        .output()
+        .unwrap();
     (
         out.status.success(),
         format!(

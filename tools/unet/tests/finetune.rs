@@ -79,6 +79,8 @@ fn your_labelled_frames_fine_tune_the_committed_model_in_one_command() {
 
     let made = Command::new(env!("CARGO_BIN_EXE_unet-dataset"))
         .args(["--labelme-frames", "30", "--style", "heldout"])
+        .arg("--rig")
+        .arg(root.join("fieldmaps/rigs/paper.toml"))
         .args([
             "--dye-rgb",
             "215,110,30",
@@ -101,6 +103,8 @@ fn your_labelled_frames_fine_tune_the_committed_model_in_one_command() {
         .arg(root.join("scripts/finetune_unet.sh"))
         .arg(&labels)
         .arg(&out)
+        .arg("--rig")
+        .arg(root.join("fieldmaps/rigs/paper.toml"))
         .args(["--epochs", "3"])
         .env("PYTHON", &python)
         .env("BIN", &bin)

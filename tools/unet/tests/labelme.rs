@@ -92,6 +92,8 @@ fn make_set(rig: &Rig, dir: &Path) -> Vec<Option<Truth>> {
 
 fn unet_import(args: &[&std::ffi::OsStr]) -> (bool, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_unet-import"))
+        .arg("--rig")
+        .arg(fieldmaps::rigfile::paper_rig_path())
         .args(args)
         .output()
         .unwrap();

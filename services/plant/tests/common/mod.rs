@@ -1,14 +1,26 @@
 //! Shared helpers of the plant's integration tests.
 #![allow(dead_code)]
 
-use fieldmaps::coils::{CoilSystem, COIL_COUNT};
+use std::sync::OnceLock;
+
 use fieldmaps::flowmap::FlowMap;
-use fieldmaps::rig::{FluidParams, RobotParams};
+use fieldmaps::rig::FluidParams;
 use fieldmaps::rigfile::Rig;
 use millinav_plant::model::{PlantModel, PlantPhysicsConfig};
 use nalgebra::Vector2;
 
 pub const FRAME_S: f64 = 0.01;
+
+/// The committed paper rig, the tests' fixture (loaded once).
+pub fn paper() -> &'static Rig {
+    static RIG: OnceLock<Rig> = OnceLock::new();
+    RIG.get_or_init(|| Rig::load_paper().unwrap())
+}
+
+/// Its coil count.
+pub fn coil_count() -> usize {
+    paper().coils.len()
+}
 
 pub fn fluid() -> FluidParams {
     FluidParams {
@@ -40,10 +52,10 @@ pub fn swirl_map() -> FlowMap {
 
 pub fn model(flow: FlowMap, config: PlantPhysicsConfig, seed: u64) -> PlantModel {
     PlantModel::new(
-        CoilSystem::paper_rig(),
-        RobotParams::default(),
+        paper().winding_model().unwrap(),
+        paper().robot,
         &fluid(),
-        &Rig::load_paper().unwrap().phantom,
+        &paper().phantom,
         flow,
         config,
         seed,
@@ -55,9 +67,11 @@ pub fn ra_start() -> Vector2<f64> {
     Vector2::new(-0.016, 0.010)
 }
 
-pub fn currents(value: f64, coil: usize) -> [f64; COIL_COUNT] {
-    let mut c = [0.0; COIL_COUNT];
-    c[coil % COIL_COUNT] = value;
+/// `value` A in coil `coil` (modulo the rig's coil count), none in the others.
+pub fn currents(value: f64, coil: usize) -> Vec<f64> {
+    let mut c = vec![0.0; coil_count()];
+    let n = c.len();
+    c[coil % n] = value;
     c
 }
 

@@ -19,9 +19,9 @@ struct Args {
     /// Pixel (column row) on the capsule, e.g. read off an image viewer.
     #[arg(long, num_args = 2, required = true, value_names = ["COL", "ROW"])]
     at_px: Vec<i32>,
-    /// Rig file (capsule size, camera scale); default: the paper's, fieldmaps/rigs/paper.toml.
+    /// Rig file (capsule size, camera scale), e.g. fieldmaps/rigs/paper.toml.
     #[arg(long)]
-    rig: Option<PathBuf>,
+    rig: PathBuf,
     /// Radius of the disc sampled around the click (px); default: 0.6 capsule lengths.
     #[arg(long)]
     radius_px: Option<i32>,
@@ -29,7 +29,7 @@ struct Args {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let rig = fieldmaps::rigfile::Rig::load_or_paper(args.rig.as_deref())?;
+    let rig = fieldmaps::rigfile::Rig::load(&args.rig)?;
     let path = args.frame.to_string_lossy().into_owned();
     let bgr = imgcodecs::imread(&path, imgcodecs::IMREAD_COLOR)
         .with_context(|| format!("reading {path}"))?;

@@ -28,9 +28,9 @@ struct Args {
     /// libonnxruntime.so (default: ORT_DYLIB_PATH, then the project venv).
     #[arg(long)]
     onnxruntime: Option<PathBuf>,
-    /// Rig file whose capsule the split shows (default: the paper's, fieldmaps/rigs/paper.toml).
+    /// Rig file whose capsule the split shows, e.g. fieldmaps/rigs/paper.toml.
     #[arg(long)]
-    rig: Option<PathBuf>,
+    rig: PathBuf,
     /// Also evaluate under lighting, colour cast, background texture, bubbles, glare, shadow,
     /// motion blur, noise, JPEG, scale ±10 % and partial occlusion, each at severities 1–3.
     #[arg(long)]
@@ -50,7 +50,7 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let split =
         Split::load(&args.split).with_context(|| format!("loading {}", args.split.display()))?;
-    let rig = fieldmaps::rigfile::Rig::load_or_paper(args.rig.as_deref())?;
+    let rig = fieldmaps::rigfile::Rig::load(&args.rig)?;
     let size = CapsuleSize::of(&rig.robot);
     let mm_per_px = split
         .labels

@@ -641,7 +641,7 @@ pub fn run(args: &ImportCoilsArgs) -> anyhow::Result<()> {
     }
     let [gx, gy, gz] = grid.shape;
     println!(
-        "wrote {} ({gx} x {gy} x {gz} nodes); use it with field_model = \"maps:{}\" in the rig file",
+        "wrote {} ({gx} x {gy} x {gz} nodes); use it with field_model = {{ kind = \"maps\", dir = \"{}\" }} in the rig file",
         args.out.display(),
         args.out.display()
     );

@@ -46,9 +46,9 @@ struct Args {
     /// Cameras (background textures and noise levels) per split.
     #[arg(long, default_value_t = 6)]
     cameras: usize,
-    /// Rig file: camera, phantom and capsule (default: the paper's, fieldmaps/rigs/paper.toml).
+    /// Rig file: camera, phantom and capsule, e.g. fieldmaps/rigs/paper.toml.
     #[arg(long)]
-    rig: Option<PathBuf>,
+    rig: PathBuf,
     /// Generator setting: the twin's look, domain-randomized scenes, or the held-out setting.
     #[arg(long, value_enum, default_value_t = Style::Twin)]
     style: Style,
@@ -172,7 +172,7 @@ impl Style {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let rig = Rig::load_or_paper(args.rig.as_deref())?;
+    let rig = Rig::load(&args.rig)?;
     if let Some(frames) = args.labelme_frames {
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("creating {}", args.out.display()))?;

@@ -22,9 +22,9 @@ struct Args {
     /// Output directory; gets train/ and val/.
     #[arg(long)]
     out: PathBuf,
-    /// Rig file whose camera took the frames (default: the paper's).
+    /// Rig file whose camera took the frames.
     #[arg(long)]
-    rig: Option<PathBuf>,
+    rig: PathBuf,
     /// Every k-th frame goes to val/ (whole frames, so no crop of a val frame is trained on);
     /// 0: no val split.
     #[arg(long, default_value_t = 5)]
@@ -53,7 +53,7 @@ struct Args {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let rig = Rig::load_or_paper(args.rig.as_deref())?;
+    let rig = Rig::load(&args.rig)?;
     let names = LabelNames {
         body: args.body_label.clone(),
         tip: args.tip_label.clone(),

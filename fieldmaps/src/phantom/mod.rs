@@ -1,25 +1,19 @@
-//! Parametric top-view heart phantom and camera image geometry.
+//! Parametric top-view phantom and camera image geometry.
 //!
 //! The canal (fluid) is a union of primitives — discs and thick polylines (chains of capsule
 //! segments) — described by a signed distance field: negative in the canal, positive in the
 //! agarose wall. Coordinates: metres, x right, y up, origin at the centre of the camera view.
+//! A phantom is data ([`file`]): the paper's heart is `fieldmaps/rigs/paper/heart_phantom.toml`.
+
+mod file;
 
 use nalgebra::{Unit, Vector2};
 use thiserror::Error;
 
+pub use file::{PhantomFileError, PHANTOM_FORMAT, PHANTOM_VERSION};
+
 /// Planner's minimum wall clearance (paper: 5 mm).
 pub const PLANNER_CLEARANCE_M: f64 = 0.005;
-/// Paper: high-disturbance zone (inlet streams converge, tricuspid-like narrowing) for
-/// y ∈ [−10, 0] mm.
-pub const HIGH_DISTURBANCE_Y_RANGE_M: (f64, f64) = (-0.010, 0.0);
-/// Paper: recirculation zone for y ∈ [−5, 10] mm (the lower right atrium in this layout).
-pub const RECIRCULATION_Y_RANGE_M: (f64, f64) = (-0.005, 0.010);
-/// CFD inlet tubes: D = 3 mm, L = 85 mm (paper Sec. II-B).
-pub const INLET_DIAMETER_M: f64 = 0.003;
-pub const INLET_LENGTH_M: f64 = 0.085;
-/// Outlet tube diameter: √2 × the inlet's, so the outlet's mean speed equals the inlets'
-/// (the paper does not give it).
-pub const OUTLET_DIAMETER_M: f64 = INLET_DIAMETER_M * std::f64::consts::SQRT_2;
 
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum PhantomError {
@@ -127,10 +121,6 @@ pub struct Phantom {
     end_m: Vector2<f64>,
 }
 
-fn mm(x: f64, y: f64) -> Vector2<f64> {
-    Vector2::new(x, y) * 1e-3
-}
-
 impl Phantom {
     /// A custom phantom; `start_m` and `end_m` must lie in the canal.
     pub fn new(
@@ -160,104 +150,6 @@ impl Phantom {
             return Err(PhantomError::PointOutside("end"));
         }
         Ok(ph)
-    }
-
-    /// The default heart phantom (all dimensions in mm, view is ±46 mm):
-    ///
-    /// - right atrium (RA): disc at (−16, 10), r = 15 (y from −5 to 25);
-    /// - inlet 1 (SVC-like): D = 3 mm tube entering the RA from the top edge at x = −20, flowing
-    ///   −y; inlet 2 (IVC-like): D = 3 mm tube entering from the left edge at y = −1, flowing +x.
-    ///   Their jets meet in the lower RA, next to the valve, i.e. inside y ∈ [−10, 0];
-    /// - tricuspid-like narrowing: 13 mm wide channel from (−12, 3) to (2, −18); its neck (outside
-    ///   both chambers) spans y ≈ −3 … −13;
-    /// - right ventricle (RV): disc at (4, −24), r = 13;
-    /// - outflow tract: 14 mm wide channel curving from the RV to the right and up,
-    ///   (8, −27) → (19, −26) → (27, −17) → (29, −4) → (27, 9) → (21, 19) → (14, 27);
-    /// - pulmonary trunk: disc at (13, 29), r = 8, with the outlet tube (D = 4.24 mm) leaving
-    ///   through the top edge at x = 13.
-    ///
-    /// Every channel on the main route is ≥ 13 mm wide, so a 5 mm clearance core (paper
-    /// planner) remains; the core is connected from the start (RA, below inlet 1) to the end
-    /// (pulmonary trunk centre). Inlet tubes are narrower than the robot: it cannot enter them.
-    pub fn default_heart() -> Self {
-        let ra_c = mm(-16.0, 10.0);
-        let ra_r = 15.0e-3;
-        let inlet_r = 0.5 * INLET_DIAMETER_M;
-        let outlet_r = 0.5 * OUTLET_DIAMETER_M;
-        // Mouths: where the straight tubes cross the RA circle / leave the trunk disc.
-        let inlet1_mouth = mm(-20.0, 10.0 + (15.0_f64.powi(2) - 4.0_f64.powi(2)).sqrt());
-        let inlet2_mouth = mm(-16.0 - (15.0_f64.powi(2) - 11.0_f64.powi(2)).sqrt(), -1.0);
-        let primitives = vec![
-            Primitive::Disc {
-                center_m: ra_c,
-                radius_m: ra_r,
-            },
-            Primitive::Tube {
-                points_m: vec![mm(-20.0, 47.0), mm(-20.0, 20.0)],
-                radius_m: inlet_r,
-            },
-            Primitive::Tube {
-                points_m: vec![mm(-47.0, -1.0), mm(-24.0, -1.0)],
-                radius_m: inlet_r,
-            },
-            Primitive::Tube {
-                points_m: vec![mm(-12.0, 3.0), mm(2.0, -18.0)],
-                radius_m: 6.5e-3,
-            },
-            Primitive::Disc {
-                center_m: mm(4.0, -24.0),
-                radius_m: 13.0e-3,
-            },
-            Primitive::Tube {
-                points_m: vec![
-                    mm(8.0, -27.0),
-                    mm(19.0, -26.0),
-                    mm(27.0, -17.0),
-                    mm(29.0, -4.0),
-                    mm(27.0, 9.0),
-                    mm(21.0, 19.0),
-                    mm(14.0, 27.0),
-                ],
-                radius_m: 7.0e-3,
-            },
-            Primitive::Disc {
-                center_m: mm(13.0, 29.0),
-                radius_m: 8.0e-3,
-            },
-            Primitive::Tube {
-                points_m: vec![mm(13.0, 35.0), mm(13.0, 47.0)],
-                radius_m: outlet_r,
-            },
-        ];
-        let inlets = vec![
-            Inlet {
-                name: "inlet-1".into(),
-                mouth_m: inlet1_mouth,
-                direction: Unit::new_unchecked(-Vector2::y()),
-                diameter_m: INLET_DIAMETER_M,
-                length_m: INLET_LENGTH_M,
-            },
-            Inlet {
-                name: "inlet-2".into(),
-                mouth_m: inlet2_mouth,
-                direction: Unit::new_unchecked(Vector2::x()),
-                diameter_m: INLET_DIAMETER_M,
-                length_m: INLET_LENGTH_M,
-            },
-        ];
-        let outlet = Outlet {
-            name: "pulmonary-trunk".into(),
-            mouth_m: mm(13.0, 37.0),
-            direction: Unit::new_unchecked(Vector2::y()),
-            diameter_m: OUTLET_DIAMETER_M,
-        };
-        Self {
-            primitives,
-            inlets,
-            outlet,
-            start_m: mm(-20.0, 16.0),
-            end_m: mm(13.0, 29.0),
-        }
     }
 
     pub fn primitives(&self) -> &[Primitive] {
@@ -305,12 +197,12 @@ impl Phantom {
         self.signed_distance(p) < 0.0
     }
 
-    /// Default start: right atrium just below inlet 1 (7.8 mm clearance).
+    /// The default task's start.
     pub fn default_start(&self) -> Vector2<f64> {
         self.start_m
     }
 
-    /// Default end: pulmonary trunk centre (8 mm clearance).
+    /// The default task's end.
     pub fn default_end(&self) -> Vector2<f64> {
         self.end_m
     }
@@ -336,19 +228,6 @@ pub struct ImageGeometry {
     pub mm_per_px: f64,
     pub origin_x_mm: f64,
     pub origin_y_mm: f64,
-}
-
-impl Default for ImageGeometry {
-    /// The paper's top camera: 1020 × 1020 px over 92 × 92 mm, centred on the origin.
-    fn default() -> Self {
-        Self {
-            width_px: 1020,
-            height_px: 1020,
-            mm_per_px: 92.0 / 1020.0,
-            origin_x_mm: -46.0,
-            origin_y_mm: 46.0,
-        }
-    }
 }
 
 impl ImageGeometry {
@@ -441,17 +320,31 @@ pub(crate) fn closest_point_on_segment(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use std::collections::VecDeque;
 
-    fn geom() -> ImageGeometry {
-        ImageGeometry::default()
+    /// The paper's top camera as `fieldmaps/rigs/paper.toml` gives it: 1020 × 1020 px over
+    /// 92 × 92 mm, centred on the origin (the view `paper/heart_mask.png` was drawn in).
+    /// The paper's heart phantom, from its file.
+    pub(crate) fn heart() -> Phantom {
+        let path = crate::data_root().join("fieldmaps/rigs/paper/heart_phantom.toml");
+        Phantom::load(&path).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    pub(crate) fn geom() -> ImageGeometry {
+        ImageGeometry {
+            width_px: 1020,
+            height_px: 1020,
+            mm_per_px: 92.0 / 1020.0,
+            origin_x_mm: -46.0,
+            origin_y_mm: 46.0,
+        }
     }
 
     #[test]
     fn default_task_has_clearance() {
-        let ph = Phantom::default_heart();
+        let ph = heart();
         for (name, p) in [("start", ph.default_start()), ("end", ph.default_end())] {
             assert!(ph.contains(&p), "{name}");
             assert!(
@@ -495,7 +388,7 @@ mod tests {
 
     #[test]
     fn raster_is_connected_with_planner_clearance() {
-        let ph = Phantom::default_heart();
+        let ph = heart();
         let g = geom();
         let mask = rasterize(&ph, &g);
         let (w, h) = (g.width_px as usize, g.height_px as usize);
@@ -522,7 +415,7 @@ mod tests {
 
     #[test]
     fn canal_fits_the_view_except_ports() {
-        let ph = Phantom::default_heart();
+        let ph = heart();
         let g = geom();
         let mask = rasterize(&ph, &g);
         let w = g.width_px as usize;
@@ -546,7 +439,7 @@ mod tests {
 
     #[test]
     fn ports_are_consistent() {
-        let ph = Phantom::default_heart();
+        let ph = heart();
         let inlets = ph.inlets();
         assert_eq!(inlets.len(), 2);
         for inlet in &inlets {
@@ -565,8 +458,9 @@ mod tests {
         let out = ph.outlet();
         let down = out.mouth_m + out.direction.into_inner() * 0.003;
         assert!(ph.contains(&out.mouth_m) && ph.contains(&down));
-        // Inlet jets point into the high-disturbance band / toward the valve.
-        let (lo, hi) = HIGH_DISTURBANCE_Y_RANGE_M;
+        // Inlet jets point into the paper's high-disturbance band (y in [-10, 0] mm), toward
+        // the valve.
+        let (lo, hi) = (-0.010, 0.0);
         assert!((lo..=hi).contains(&inlets[1].mouth_m.y));
         let neck = Vector2::new(-0.005, -0.0075);
         assert!(ph.contains(&neck) && (lo..=hi).contains(&neck.y));
@@ -574,7 +468,7 @@ mod tests {
 
     #[test]
     fn sdf_and_normal_behave() {
-        let ph = Phantom::default_heart();
+        let ph = heart();
         // Right atrium: a point just inside its left wall.
         let p = Vector2::new(-0.030, 0.010);
         assert!((ph.signed_distance(&p) - -0.001).abs() < 1e-12);
@@ -610,7 +504,7 @@ mod tests {
 
     #[test]
     fn custom_phantom_validation() {
-        let ph = Phantom::default_heart();
+        let ph = heart();
         let disc = Primitive::Disc {
             center_m: Vector2::zeros(),
             radius_m: 0.01,
@@ -664,13 +558,13 @@ mod tests {
             ..g
         };
         assert!(bad.validate().is_err());
-        assert!(rasterize(&Phantom::default_heart(), &bad).is_empty());
+        assert!(rasterize(&heart(), &bad).is_empty());
         let small = ImageGeometry {
             width_px: 64,
             height_px: 32,
             mm_per_px: 92.0 / 64.0,
             ..g
         };
-        assert_eq!(rasterize(&Phantom::default_heart(), &small).len(), 64 * 32);
+        assert_eq!(rasterize(&heart(), &small).len(), 64 * 32);
     }
 }
