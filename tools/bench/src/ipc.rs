@@ -111,6 +111,13 @@ impl FrameShape {
     }
 }
 
+/// The frame a measurement sends: its pixels and shape.
+#[derive(Debug, Clone, Copy)]
+pub struct Frame<'a> {
+    pub pixels: &'a [u8],
+    pub shape: FrameShape,
+}
+
 impl Rendezvous {
     pub fn new(dir: &Path, frame: FrameShape) -> Self {
         Self {
@@ -178,10 +185,13 @@ pub fn measure(
     transport: Transport,
     message: Message,
     count: u64,
-    pixels: &[u8],
-    frame: FrameShape,
+    frame: Frame<'_>,
     placement: Placement,
 ) -> Result<Measured, BenchError> {
+    let Frame {
+        pixels,
+        shape: frame,
+    } = frame;
     if pixels.len() != frame.bytes() {
         return Err(setup(&format!(
             "{} pixel bytes for a {}x{} frame",

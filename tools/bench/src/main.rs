@@ -183,7 +183,11 @@ fn ipc_rows(
     let n_frame = cli.frame_iters as u64;
     let n_pose = cli.iters as u64;
     let m = |t, msg, n, placement| {
-        measure(exe, work, t, msg, n, &scene.rgb, frame, placement)
+        let sent = ipc::Frame {
+            pixels: &scene.rgb,
+            shape: frame,
+        };
+        measure(exe, work, t, msg, n, sent, placement)
             .with_context(|| format!("IPC {t:?} {msg:?} {placement:?}"))
     };
     let p99_under = |v: &[f64], ns: f64| Stats::of(v).is_some_and(|s| s.p99_ns < ns);
