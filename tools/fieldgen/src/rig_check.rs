@@ -170,7 +170,7 @@ pub fn force_budget(rig: &Rig, field_t: f64, omega0: f64, spacing_m: f64) -> For
 /// Loads the rig (every file it names included) and prints its summary and force budget, or
 /// fails with the error naming the file and the field.
 pub fn run(args: &RigCheckArgs) -> anyhow::Result<()> {
-    let rig = Rig::load(&args.rig)?;
+    let (rig, maps_to_make) = load(args)?;
     print!("{}", rig.summary());
     if !(args.omega0.is_finite() && args.omega0 > 0.0) {
         anyhow::bail!("--omega0 must be > 0");
@@ -230,6 +230,31 @@ pub fn run(args: &RigCheckArgs) -> anyhow::Result<()> {
             );
         }
     }
-    println!("rig ok");
+    match maps_to_make {
+        None => println!("rig ok"),
+        Some(why) => println!(
+            "rig ok, except its flow maps: {why}\n  make them: millinav maps cfd --all --rig {}",
+            args.rig.display()
+        ),
+    }
     Ok(())
+}
+
+/// The rig, checked whole; or, when only its flow maps are not there yet (a new rig is checked
+/// before its CFD maps are made), the rest of it and why the maps are missing. A map that is
+/// there but wrong is an error like any other.
+fn load(args: &RigCheckArgs) -> anyhow::Result<(Rig, Option<String>)> {
+    match Rig::load(&args.rig) {
+        Ok(rig) => Ok((rig, None)),
+        Err(e) => {
+            let missing_map = e
+                .field()
+                .is_some_and(|f| f.starts_with("phantom.flow[") && f.ends_with("].map"))
+                && e.to_string().contains("cannot read flow map");
+            if !missing_map {
+                return Err(e.into());
+            }
+            Ok((crate::cfd::load_rig(&args.rig)?, Some(e.to_string())))
+        }
+    }
 }

@@ -123,3 +123,48 @@ fn an_empty_field_list_skips_the_force_budget_and_a_bad_one_is_named() {
         "{stderr}"
     );
 }
+
+/// The paper rig written to `dir` with its data paths absolute, one flow map at `flow_map`.
+fn paper_copy(dir: &Path, flow_map: &Path) -> std::path::PathBuf {
+    let rigs = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fieldmaps/rigs")
+        .canonicalize()
+        .unwrap();
+    let rigs = rigs.display();
+    let text = std::fs::read_to_string(format!("{rigs}/paper.toml"))
+        .unwrap()
+        .replace("dir = \"../", &format!("dir = \"{rigs}/../"))
+        .replace("\"paper/", &format!("\"{rigs}/paper/"))
+        .replacen(
+            "\"../flow/q180_mu20.flow.csv\"",
+            &format!("{flow_map:?}"),
+            1,
+        )
+        .replace("\"../flow/", &format!("\"{rigs}/../flow/"));
+    std::fs::create_dir_all(dir).unwrap();
+    let path = dir.join("rig.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+#[test]
+fn a_rig_whose_flow_maps_are_not_made_yet_checks_out_and_says_so() {
+    let dir = std::env::temp_dir().join(format!("millinav-rig-check-flow-{}", std::process::id()));
+    let missing = dir.join("not-made-yet.flow.csv");
+    let out = fieldgen(&paper_copy(&dir, &missing));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("rig ok, except its flow maps"), "{stdout}");
+    assert!(stdout.contains("millinav maps cfd --all --rig"), "{stdout}");
+    // A map that is there but wrong is refused like any other error.
+    std::fs::write(&missing, "not a flow map\n").unwrap();
+    let out = fieldgen(&paper_copy(&dir, &missing));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    std::fs::remove_dir_all(&dir).ok();
+    assert!(!out.status.success());
+    assert!(stderr.contains("is not a valid flow map"), "{stderr}");
+}
