@@ -7,6 +7,7 @@
 //! - `process`: the real process set in lockstep through `millinav run`, metrics from truth.csv.
 
 pub mod campaign;
+pub mod keys;
 pub mod noise_floor;
 pub mod report;
 pub mod robustness;
@@ -228,20 +229,9 @@ pub fn add_capture_to_coils_delay(
         frame_period_ms.is_finite() && frame_period_ms > 0.0,
         "the frame period must be > 0 ms, got {frame_period_ms}"
     );
-    let number = |doc: &toml::Table, path: &[&str]| -> Option<f64> {
-        let (key, tables) = path.split_last()?;
-        let mut table = doc;
-        for name in tables {
-            table = table.get(*name)?.as_table()?;
-        }
-        let value = table.get(*key)?;
-        value
-            .as_float()
-            .or_else(|| value.as_integer().map(|i| i as f64))
-    };
-    let frames_before = number(doc, &["plant", "camera", "latency_frames"]).unwrap_or(0.0);
-    let in_frame_before = number(doc, &["plant", "command_delay_ms"]).unwrap_or(0.0);
-    let told_before = number(doc, &["control", "latency", "unstamped_delay_ms"]).unwrap_or(0.0);
+    let frames_before = keys::CAMERA_LATENCY_FRAMES.number(doc).unwrap_or(0.0);
+    let in_frame_before = keys::COMMAND_DELAY_MS.number(doc).unwrap_or(0.0);
+    let told_before = keys::UNSTAMPED_DELAY_MS.number(doc).unwrap_or(0.0);
     // A hair of tolerance so that 100 ms at a 10 ms frame is ten frames, not nine and 10 ms.
     let tolerance_ms = 1e-9 * frame_period_ms.max(1.0);
     let in_frame_total = in_frame_before + delay_ms;
@@ -259,24 +249,12 @@ pub fn add_capture_to_coils_delay(
          periods ({frame_period_ms} ms)",
         frames_before * frame_period_ms + in_frame_before + delay_ms
     );
-    set_in_table(
-        doc,
-        &["plant", "camera", "latency_frames"],
-        toml::Value::Integer(frames as i64),
-    )?;
+    keys::CAMERA_LATENCY_FRAMES.set(doc, frames as i64)?;
     if in_frame != in_frame_before {
-        set_in_table(
-            doc,
-            &["plant", "command_delay_ms"],
-            toml::Value::Float(in_frame),
-        )?;
+        keys::COMMAND_DELAY_MS.set(doc, in_frame)?;
         // Control is told what the stamps cannot show: the change inside the frame.
         let told = (told_before + in_frame - in_frame_before).max(0.0);
-        set_in_table(
-            doc,
-            &["control", "latency", "unstamped_delay_ms"],
-            toml::Value::Float(told),
-        )?;
+        keys::UNSTAMPED_DELAY_MS.set(doc, told)?;
     }
     Ok(())
 }
@@ -337,74 +315,39 @@ pub fn scenario_document(scenario: &Scenario) -> anyhow::Result<toml::Table> {
 pub fn cell_scenario(base: &Scenario, cell: &Cell) -> anyhow::Result<String> {
     let rig = base.rig()?;
     let mut doc = scenario_document(base)?;
-    set_in_table(
-        &mut doc,
-        &["run", "seed"],
-        toml::Value::Integer(cell.seed as i64),
-    )?;
-    set_in_table(
-        &mut doc,
-        &["fluid", "viscosity_cp"],
-        cell.viscosity_cp.into(),
-    )?;
-    let mut flow = doc
-        .get("flow")
-        .and_then(|v| v.as_table().cloned())
-        .unwrap_or_default();
-    flow.remove("map");
+    keys::SEED.set(&mut doc, cell.seed as i64)?;
+    keys::VISCOSITY_CP.set(&mut doc, cell.viscosity_cp)?;
+    keys::FLOW_MAP.remove(&mut doc)?;
     if let Some(map) = cell.flow.map(cell.viscosity_cp, &rig)? {
-        flow.insert("map".into(), map.to_string_lossy().into_owned().into());
+        keys::FLOW_MAP.set(&mut doc, map.to_string_lossy().into_owned())?;
     }
-    doc.insert("flow".into(), flow.into());
-    let mut control = doc
-        .get("control")
-        .and_then(|v| v.as_table().cloned())
-        .unwrap_or_default();
-    control.insert("controller".into(), cell.controller.clone().into());
+    keys::CONTROLLER.set(&mut doc, cell.controller.clone())?;
     match cell.controller.as_str() {
         "smc-dob-auto" | "smc-auto" => {
-            control.insert("constrained_allocation".into(), true.into());
-            control.insert("use_all_coils".into(), true.into());
+            keys::CONSTRAINED_ALLOCATION.set(&mut doc, true)?;
+            keys::USE_ALL_COILS.set(&mut doc, true)?;
             // Beyond the paper too: the orientation field turns for force at the coil limits
             // and, where the fluid moves, to pull the magnet along its axis; the coil gains
             // are corrected online from the heading.
-            control
-                .entry("field_heading_turn_deg")
-                .or_insert_with(|| 45.0.into());
-            control
-                .entry("field_follows_force")
-                .or_insert_with(|| true.into());
-            let mut estimation = control
-                .get("gain_estimation")
-                .and_then(|v| v.as_table().cloned())
-                .unwrap_or_default();
-            estimation.entry("enabled").or_insert_with(|| true.into());
-            control.insert("gain_estimation".into(), estimation.into());
+            keys::FIELD_HEADING_TURN_DEG.set_if_absent(&mut doc, 45.0)?;
+            keys::FIELD_FOLLOWS_FORCE.set_if_absent(&mut doc, true)?;
+            keys::GAIN_ESTIMATION_ENABLED.set_if_absent(&mut doc, true)?;
         }
         // The paper ran its SMC with a second, fixed gain set whenever the fluid moved.
         "smc-dob" | "smc" if cell.flow != FlowSetting::Static => {
             let paper = millinav_control::controllers::SmcGains::default();
-            let mut smc = control
-                .get("smc")
-                .and_then(|v| v.as_table().cloned())
-                .unwrap_or_default();
             // The base scenario's flow gains where it gives them, else the paper's.
-            let flow_gain = |key: &str, paper: f64| {
-                smc.get(key)
-                    .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
-                    .unwrap_or(paper)
-            };
-            let k4 = flow_gain("flow_k4_n", paper.flow_k4_n);
-            let eta = flow_gain("flow_eta_s", paper.flow_eta_s);
-            let phi = flow_gain("flow_phi_m", paper.flow_phi_m);
-            smc.insert("k4_n".into(), k4.into());
-            smc.insert("eta_s".into(), eta.into());
-            smc.insert("phi_m".into(), phi.into());
-            control.insert("smc".into(), smc.into());
+            for (gain, flow_gain, paper) in [
+                (keys::SMC_K4_N, keys::SMC_FLOW_K4_N, paper.flow_k4_n),
+                (keys::SMC_ETA_S, keys::SMC_FLOW_ETA_S, paper.flow_eta_s),
+                (keys::SMC_PHI_M, keys::SMC_FLOW_PHI_M, paper.flow_phi_m),
+            ] {
+                let value = flow_gain.number(&doc).unwrap_or(paper);
+                gain.set(&mut doc, value)?;
+            }
         }
         _ => {}
     }
-    doc.insert("control".into(), control.into());
     Ok(toml::to_string(&doc)?)
 }
 

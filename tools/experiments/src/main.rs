@@ -13,7 +13,7 @@ use millinav_experiments::campaign::{
 use millinav_experiments::runner::{self, TaskCells, TaskEnd};
 use millinav_experiments::slurm::{self, SlurmSettings};
 use millinav_experiments::{
-    add_capture_to_coils_delay, noise_floor, report, rig_matrix, robustness, set_in_table,
+    add_capture_to_coils_delay, keys, noise_floor, report, rig_matrix, robustness,
     MAX_LATENCY_FRAMES,
 };
 use millinav_kit::scenario::Scenario;
@@ -660,11 +660,7 @@ fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
             millinav_plant::MAX_EXPOSURE_PERIOD_FRAMES,
             base.run.frame_period_ms
         );
-        set_in_table(
-            &mut base.sections,
-            &["plant", "camera", "exposure_period_frames"],
-            toml::Value::Integer(frames.round() as i64),
-        )?;
+        keys::CAMERA_EXPOSURE_PERIOD_FRAMES.set(&mut base.sections, frames.round() as i64)?;
     }
     if let Some(delay_ms) = args.command_delay_ms {
         anyhow::ensure!(
@@ -673,11 +669,8 @@ fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
              delay are --camera-latency-ms), got {delay_ms}",
             base.run.frame_period_ms
         );
-        for path in [
-            &["plant", "command_delay_ms"][..],
-            &["control", "latency", "unstamped_delay_ms"][..],
-        ] {
-            set_in_table(&mut base.sections, path, toml::Value::Float(delay_ms))?;
+        for key in [keys::COMMAND_DELAY_MS, keys::UNSTAMPED_DELAY_MS] {
+            key.set(&mut base.sections, delay_ms)?;
         }
     }
     if let Some(latency_ms) = args.camera_latency_ms {
@@ -690,11 +683,7 @@ fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
             MAX_LATENCY_FRAMES as f64 * base.run.frame_period_ms,
             base.run.frame_period_ms
         );
-        set_in_table(
-            &mut base.sections,
-            &["plant", "camera", "latency_frames"],
-            toml::Value::Integer(0),
-        )?;
+        keys::CAMERA_LATENCY_FRAMES.set(&mut base.sections, 0)?;
         add_capture_to_coils_delay(&mut base.sections, latency_ms, base.run.frame_period_ms)?;
     }
     if let Some(std) = args.coil_gain_error {
@@ -702,18 +691,10 @@ fn load_base(args: &MatrixArgs) -> anyhow::Result<Scenario> {
             std.is_finite() && (0.0..0.5).contains(&std),
             "--coil-gain-error must be within 0..0.5 (a fraction), got {std}"
         );
-        set_in_table(
-            &mut base.sections,
-            &["plant", "physics", "coil_gain_error_std"],
-            toml::Value::Float(std),
-        )?;
+        keys::COIL_GAIN_ERROR_STD.set(&mut base.sections, std)?;
     }
     if args.no_latency_compensation {
-        set_in_table(
-            &mut base.sections,
-            &["control", "latency", "compensate"],
-            toml::Value::Boolean(false),
-        )?;
+        keys::LATENCY_COMPENSATE.set(&mut base.sections, false)?;
     }
     for setting in &args.settings {
         millinav_experiments::apply_setting(&mut base.sections, setting)?;

@@ -9,7 +9,7 @@ use plotters::prelude::*;
 
 use millinav_kit::scenario::Scenario;
 
-use crate::{reference_of, Cell, FlowSetting, Metrics, TraceRow};
+use crate::{keys, reference_of, Cell, FlowSetting, Metrics, TraceRow};
 
 /// One finished run.
 #[derive(Debug, Clone)]
@@ -547,29 +547,21 @@ pub fn traces_figure(
 /// The run settings line of a matrix's table: mode, frame period, camera latency and whether
 /// control compensates it, the twin's coil gain error, and the rig.
 pub fn table_header(mode: &str, base: &Scenario) -> anyhow::Result<String> {
-    let get = |path: &[&str]| {
-        path.iter()
-            .try_fold(None::<&toml::Value>, |at, key| {
-                let table = match at {
-                    None => Some(&base.sections),
-                    Some(value) => value.as_table(),
-                };
-                table.and_then(|t| t.get(*key)).map(Some)
-            })
-            .flatten()
-    };
-    let frames = get(&["plant", "camera", "latency_frames"])
+    let doc = &base.sections;
+    let frames = keys::CAMERA_LATENCY_FRAMES
+        .get(doc)
         .and_then(toml::Value::as_integer)
         .unwrap_or(0);
-    let compensated = get(&["control", "latency", "compensate"])
+    let compensated = keys::LATENCY_COMPENSATE
+        .get(doc)
         .and_then(toml::Value::as_bool)
         .unwrap_or(true);
-    let gain_error = get(&["plant", "physics", "coil_gain_error_std"])
-        .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+    let gain_error = keys::COIL_GAIN_ERROR_STD
+        .number(doc)
         .unwrap_or(millinav_plant::model::PlantPhysicsConfig::default().coil_gain_error_std);
-    let cylinder =
-        get(&["plant", "physics", "drag_shape"]).and_then(toml::Value::as_str) == Some("cylinder");
-    let mut floor = get(&["plant", "physics", "floor_gap_m"])
+    let cylinder = keys::DRAG_SHAPE.get(doc).and_then(toml::Value::as_str) == Some("cylinder");
+    let mut floor = keys::FLOOR_GAP_M
+        .get(doc)
         .and_then(|v| v.as_float())
         .map_or(String::new(), |gap| {
             format!(", capsule on the floor ({:.0} µm gap)", gap * 1e6)
@@ -577,38 +569,43 @@ pub fn table_header(mode: &str, base: &Scenario) -> anyhow::Result<String> {
     if cylinder {
         floor.push_str(", the capsule's drag a cylinder's");
     }
-    let command_delay = get(&["plant", "command_delay_ms"])
-        .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+    let command_delay = keys::COMMAND_DELAY_MS
+        .number(doc)
         .filter(|ms| *ms > 0.0)
         .map_or(String::new(), |ms| {
             format!(" + {ms} ms from capture to the coils inside each frame")
         });
-    let observer = match get(&["control", "velocity_estimate"]).and_then(toml::Value::as_str) {
+    let observer = match keys::VELOCITY_ESTIMATE
+        .get(doc)
+        .and_then(toml::Value::as_str)
+    {
         Some("observer") => ", velocity from the model-based observer",
         _ => "",
     };
-    let number = |path: &[&str]| {
-        get(path).and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
-    };
-    let slew = number(&["control", "max_current_slew_a_per_s"]).map_or(String::new(), |rate| {
-        // The yield's own defaults where the table names only one of its fields.
-        let yielding = get(&["control", "slew_yield"]).map(|_| {
-            let defaults = millinav_control::SlewYieldConfig::default();
-            let fraction = number(&["control", "slew_yield", "shortfall_fraction"])
-                .unwrap_or(defaults.shortfall_fraction);
-            let faster = number(&["control", "slew_yield", "max_current_slew_a_per_s"])
-                .unwrap_or(defaults.max_current_slew_a_per_s);
+    let slew = keys::MAX_CURRENT_SLEW
+        .number(doc)
+        .map_or(String::new(), |rate| {
+            // The yield's own defaults where the table names only one of its fields.
+            let yielding = keys::SLEW_YIELD.get(doc).map(|_| {
+                let defaults = millinav_control::SlewYieldConfig::default();
+                let fraction = keys::SLEW_YIELD_SHORTFALL
+                    .number(doc)
+                    .unwrap_or(defaults.shortfall_fraction);
+                let faster = keys::SLEW_YIELD_MAX_SLEW
+                    .number(doc)
+                    .unwrap_or(defaults.max_current_slew_a_per_s);
+                format!(
+                    " ({faster} A/s where that would withhold more than {:.0} % of the force)",
+                    fraction * 100.0
+                )
+            });
             format!(
-                " ({faster} A/s where that would withhold more than {:.0} % of the force)",
-                fraction * 100.0
+                ", coil currents slew-limited to {rate} A/s{}",
+                yielding.unwrap_or_default()
             )
         });
-        format!(
-            ", coil currents slew-limited to {rate} A/s{}",
-            yielding.unwrap_or_default()
-        )
-    });
-    let camera_period = number(&["plant", "camera", "exposure_period_frames"])
+    let camera_period = keys::CAMERA_EXPOSURE_PERIOD_FRAMES
+        .number(doc)
         .filter(|frames| *frames > 1.0)
         .map_or(String::new(), |frames| {
             format!(

@@ -13,7 +13,7 @@ use millinav_kit::scenario::Scenario;
 use plotters::prelude::*;
 
 use crate::report::paper_smc_dob_rmse_mm;
-use crate::{add_capture_to_coils_delay, cell_scenario, set_in_table, Cell, FlowSetting, Metrics};
+use crate::{add_capture_to_coils_delay, cell_scenario, keys, Cell, FlowSetting, Metrics};
 
 /// A disturbance the matrix varies.
 #[derive(
@@ -196,46 +196,18 @@ pub fn cases(controllers: &[String], trials: u64, around: &Around) -> Vec<Case> 
 pub fn case_scenario(base: &Scenario, case: &Case) -> anyhow::Result<String> {
     let text = cell_scenario(base, &case.cell())?;
     let mut doc: toml::Table = toml::from_str(&text)?;
-    set_in_table(
-        &mut doc,
-        &["run", "frame_period_ms"],
-        case.frame_period_ms.into(),
-    )?;
+    keys::FRAME_PERIOD_MS.set(&mut doc, case.frame_period_ms)?;
     let level = case.level;
     match case.axis {
         Axis::PulsationHz => {
-            set_in_table(
-                &mut doc,
-                &["plant", "physics", "pulsation_hz"],
-                level.into(),
-            )?;
+            keys::PULSATION_HZ.set(&mut doc, level)?;
             // The lab sets the pump, so the controller knows its rate.
-            set_in_table(
-                &mut doc,
-                &["control", "latency", "pulsation_hz"],
-                level.into(),
-            )?;
+            keys::CONTROL_PULSATION_HZ.set(&mut doc, level)?;
         }
-        Axis::PulsationAmplitude => set_in_table(
-            &mut doc,
-            &["plant", "physics", "pulsation_amplitude"],
-            level.into(),
-        )?,
-        Axis::FlowNoise => set_in_table(
-            &mut doc,
-            &["plant", "physics", "flow_noise", "fraction"],
-            level.into(),
-        )?,
-        Axis::Recirculation => set_in_table(
-            &mut doc,
-            &["plant", "physics", "recirculation", "strength_fraction"],
-            level.into(),
-        )?,
-        Axis::CoilGainError => set_in_table(
-            &mut doc,
-            &["plant", "physics", "coil_gain_error_std"],
-            level.into(),
-        )?,
+        Axis::PulsationAmplitude => keys::PULSATION_AMPLITUDE.set(&mut doc, level)?,
+        Axis::FlowNoise => keys::FLOW_NOISE_FRACTION.set(&mut doc, level)?,
+        Axis::Recirculation => keys::RECIRCULATION_STRENGTH.set(&mut doc, level)?,
+        Axis::CoilGainError => keys::COIL_GAIN_ERROR_STD.set(&mut doc, level)?,
         Axis::CameraLatencyMs => {
             add_capture_to_coils_delay(&mut doc, level, case.frame_period_ms)?;
         }
@@ -506,9 +478,7 @@ mod tests {
     fn every_axis_reaches_the_scenario() {
         let root = fieldmaps::data_root();
         let base = Scenario::load(&root.join("scenarios/paper.toml")).unwrap();
-        let base_in_frame_ms = base.sections["plant"]["command_delay_ms"]
-            .as_float()
-            .unwrap_or(0.0);
+        let base_in_frame_ms = keys::COMMAND_DELAY_MS.number(&base.sections).unwrap_or(0.0);
         let controllers = vec!["smc-dob-auto".to_string()];
         let around = Around::on_rig(&Rig::load_paper().unwrap()).unwrap();
         let all = cases(&controllers, 1, &around);
