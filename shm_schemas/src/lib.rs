@@ -21,7 +21,7 @@ use iceoryx2::prelude::ZeroCopySend;
 /// checks every name.
 pub const CONTRACT_VERSION: u32 = 4;
 
-pub use shm_schemas_core::{PixelMapping, MAX_COILS};
+pub use shm_schemas_core::{wire_enum, BoardState, PixelMapping, MAX_COILS};
 
 /// Bytes per pixel of an RGB8 frame (a frame's size is its rig camera's: `FrameHeader`).
 pub const FRAME_CHANNELS: u32 = 3;
@@ -168,23 +168,15 @@ impl FrameStamp {
     }
 }
 
-/// Pixel layouts a frame may carry.
-#[repr(u32)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum PixelFormat {
-    Rgb8 = 1,
-    Gray8 = 2,
+wire_enum! {
+    /// Pixel layouts a frame may carry.
+    pub enum PixelFormat: u32 {
+        Rgb8 = 1 => "rgb8",
+        Gray8 = 2 => "gray8",
+    }
 }
 
 impl PixelFormat {
-    pub fn from_u32(value: u32) -> Option<Self> {
-        match value {
-            1 => Some(Self::Rgb8),
-            2 => Some(Self::Gray8),
-            _ => None,
-        }
-    }
-
     pub fn channels(self) -> u32 {
         match self {
             Self::Rgb8 => 3,
@@ -216,7 +208,7 @@ pub struct FrameHeader {
 impl FrameHeader {
     /// Checks that the header describes a buffer of `payload_len` bytes that can be read safely.
     pub fn validate(&self, payload_len: usize) -> Result<PixelFormat, ContractError> {
-        let format = PixelFormat::from_u32(self.pixel_format)
+        let format = PixelFormat::from_repr(self.pixel_format)
             .ok_or(ContractError::UnknownPixelFormat(self.pixel_format))?;
         let row_bytes = self.width as usize * format.channels() as usize;
         if self.width == 0 || self.height == 0 || (self.stride as usize) < row_bytes {
@@ -297,12 +289,12 @@ pub enum ContractError {
     BadCoilCount { payload: &'static str, count: u64 },
 }
 
-/// Which localizer produced a pose.
-#[repr(u32)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum PoseSource {
-    Classical = 1,
-    Unet = 2,
+wire_enum! {
+    /// Which localizer produced a pose.
+    pub enum PoseSource: u32 {
+        Classical = 1 => "classical",
+        Unet = 2 => "unet",
+    }
 }
 
 /// Robot pose estimated by vision.
@@ -377,26 +369,15 @@ impl FlowEstimate {
     }
 }
 
-/// What the controller asks of the coils.
-#[repr(u32)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ControlMode {
-    /// Tracking the reference.
-    Track = 1,
-    /// Input stale or invalid for a short time: hold the last field, no force.
-    Hold = 2,
-    /// Input lost: zero currents.
-    Safe = 3,
-}
-
-impl ControlMode {
-    pub fn from_u32(value: u32) -> Option<Self> {
-        match value {
-            1 => Some(Self::Track),
-            2 => Some(Self::Hold),
-            3 => Some(Self::Safe),
-            _ => None,
-        }
+wire_enum! {
+    /// What the controller asks of the coils.
+    pub enum ControlMode: u32 {
+        /// Tracking the reference.
+        Track = 1 => "track",
+        /// Input stale or invalid for a short time: hold the last field, no force.
+        Hold = 2 => "hold",
+        /// Input lost: zero currents.
+        Safe = 3 => "safe",
     }
 }
 
@@ -436,12 +417,12 @@ impl CoilCommand {
     }
 }
 
-/// State of the serial link to the coil drivers.
-#[repr(u32)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum LinkState {
-    Disconnected = 0,
-    Connected = 1,
+wire_enum! {
+    /// State of the serial link to the coil drivers.
+    pub enum LinkState: u32 {
+        Disconnected = 0 => "disconnected",
+        Connected = 1 => "connected",
+    }
 }
 
 /// `CoilStatus::board_state` before the board sent its first `Status`.
@@ -450,56 +431,26 @@ pub const BOARD_STATE_UNKNOWN: u8 = u8::MAX;
 /// The name of a `CoilStatus::board_state` value, for logs and viewers.
 pub fn board_state_name(state: u8) -> &'static str {
     match state {
-        0 => "unconfigured",
-        1 => "disarmed",
-        2 => "armed",
-        3 => "estop",
-        4 => "thermal_trip",
         BOARD_STATE_UNKNOWN => "unknown",
-        _ => "invalid",
+        state => BoardState::from_repr(state).map_or("invalid", BoardState::name),
     }
 }
 
-/// Why coilbus holds the coils safe on the board's account (`CoilStatus::board_fault`). Latched
-/// until coilbus restarts.
-#[repr(u8)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum BoardFault {
-    None = 0,
-    /// The board speaks another serial-protocol version.
-    ProtocolVersion = 1,
-    /// The board latched its emergency stop (input pin or `EStop` frame).
-    EStop = 2,
-    /// A coil spent its I²t budget and the board tripped.
-    ThermalTrip = 3,
-    /// The board's telemetry disagrees with what coilbus commanded (state, clamps, currents).
-    TelemetryDisagrees = 4,
-    /// The board refused the configuration coilbus sent (outside its hardware limits).
-    ConfigRefused = 5,
-}
-
-impl BoardFault {
-    pub fn from_u8(value: u8) -> Option<Self> {
-        Some(match value {
-            0 => Self::None,
-            1 => Self::ProtocolVersion,
-            2 => Self::EStop,
-            3 => Self::ThermalTrip,
-            4 => Self::TelemetryDisagrees,
-            5 => Self::ConfigRefused,
-            _ => return None,
-        })
-    }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::None => "none",
-            Self::ProtocolVersion => "protocol_version",
-            Self::EStop => "estop",
-            Self::ThermalTrip => "thermal_trip",
-            Self::TelemetryDisagrees => "telemetry_disagrees",
-            Self::ConfigRefused => "config_refused",
-        }
+wire_enum! {
+    /// Why coilbus holds the coils safe on the board's account (`CoilStatus::board_fault`). Latched
+    /// until coilbus restarts.
+    pub enum BoardFault: u8 {
+        None = 0 => "none",
+        /// The board speaks another serial-protocol version.
+        ProtocolVersion = 1 => "protocol_version",
+        /// The board latched its emergency stop (input pin or `EStop` frame).
+        EStop = 2 => "estop",
+        /// A coil spent its I²t budget and the board tripped.
+        ThermalTrip = 3 => "thermal_trip",
+        /// The board's telemetry disagrees with what coilbus commanded (state, clamps, currents).
+        TelemetryDisagrees = 4 => "telemetry_disagrees",
+        /// The board refused the configuration coilbus sent (outside its hardware limits).
+        ConfigRefused = 5 => "config_refused",
     }
 }
 
@@ -617,99 +568,43 @@ pub struct Heartbeat {
 /// Most waypoints one operator request carries.
 pub const MAX_OPERATOR_WAYPOINTS: usize = 32;
 
-/// What the operator asks of the running set (`millinav ctl`).
-#[repr(u32)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum OperatorVerb {
-    /// Report the state; changes nothing.
-    Status = 1,
-    /// Plan from the current pose to `waypoints_m[0]` on the canal mask and follow it.
-    Goto = 2,
-    /// Follow the current pose → `waypoints_m[..waypoint_count]`.
-    Waypoints = 3,
-    /// Hold the current position.
-    Pause = 4,
-    /// Continue the path held by `Pause`.
-    Resume = 5,
-    /// Allow coil currents again (holding position until `Resume` or a new path).
-    Arm = 6,
-    /// Zero the coil currents until `Arm`.
-    Disarm = 7,
-    /// Zero the coil currents, latched until `Arm`.
-    EStop = 8,
-    /// End the run (answered by the supervisor, which stops the set safe-state first).
-    Stop = 9,
-}
-
-impl OperatorVerb {
-    pub const ALL: [OperatorVerb; 9] = [
-        Self::Status,
-        Self::Goto,
-        Self::Waypoints,
-        Self::Pause,
-        Self::Resume,
-        Self::Arm,
-        Self::Disarm,
-        Self::EStop,
-        Self::Stop,
-    ];
-
-    pub fn from_u32(value: u32) -> Option<Self> {
-        Self::ALL.into_iter().find(|v| *v as u32 == value)
-    }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Status => "status",
-            Self::Goto => "goto",
-            Self::Waypoints => "waypoints",
-            Self::Pause => "pause",
-            Self::Resume => "resume",
-            Self::Arm => "arm",
-            Self::Disarm => "disarm",
-            Self::EStop => "estop",
-            Self::Stop => "stop",
-        }
+wire_enum! {
+    /// What the operator asks of the running set (`millinav ctl`).
+    pub enum OperatorVerb: u32 {
+        /// Report the state; changes nothing.
+        Status = 1 => "status",
+        /// Plan from the current pose to `waypoints_m[0]` on the canal mask and follow it.
+        Goto = 2 => "goto",
+        /// Follow the current pose → `waypoints_m[..waypoint_count]`.
+        Waypoints = 3 => "waypoints",
+        /// Hold the current position.
+        Pause = 4 => "pause",
+        /// Continue the path held by `Pause`.
+        Resume = 5 => "resume",
+        /// Allow coil currents again (holding position until `Resume` or a new path).
+        Arm = 6 => "arm",
+        /// Zero the coil currents until `Arm`.
+        Disarm = 7 => "disarm",
+        /// Zero the coil currents, latched until `Arm`.
+        EStop = 8 => "estop",
+        /// End the run (answered by the supervisor, which stops the set safe-state first).
+        Stop = 9 => "stop",
     }
 }
 
-/// The operator's state as control keeps it.
-#[repr(u32)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum OperatorState {
-    /// Following the path.
-    Tracking = 1,
-    /// Holding position (coils on).
-    Paused = 2,
-    /// Coils at zero until `Arm`.
-    Disarmed = 3,
-    /// Coils at zero, latched, until `Arm`.
-    EStopped = 4,
-    /// The set is shutting down (after `Stop`).
-    Stopping = 5,
-}
-
-impl OperatorState {
-    pub fn from_u32(value: u32) -> Option<Self> {
-        [
-            Self::Tracking,
-            Self::Paused,
-            Self::Disarmed,
-            Self::EStopped,
-            Self::Stopping,
-        ]
-        .into_iter()
-        .find(|s| *s as u32 == value)
-    }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Tracking => "tracking",
-            Self::Paused => "paused",
-            Self::Disarmed => "disarmed",
-            Self::EStopped => "emergency-stopped",
-            Self::Stopping => "stopping",
-        }
+wire_enum! {
+    /// The operator's state as control keeps it.
+    pub enum OperatorState: u32 {
+        /// Following the path.
+        Tracking = 1 => "tracking",
+        /// Holding position (coils on).
+        Paused = 2 => "paused",
+        /// Coils at zero until `Arm`.
+        Disarmed = 3 => "disarmed",
+        /// Coils at zero, latched, until `Arm`.
+        EStopped = 4 => "emergency-stopped",
+        /// The set is shutting down (after `Stop`).
+        Stopping = 5 => "stopping",
     }
 }
 
@@ -835,48 +730,23 @@ assert_layout!(OperatorReply, size 208, align 8, {
     message @ 48,
 });
 
-/// The processes of the set.
-#[repr(u32)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum ServiceId {
-    Plant = 1,
-    Vision = 2,
-    Flow = 3,
-    Control = 4,
-    Coilbus = 5,
-    Supervisor = 6,
-    Camera = 7,
+wire_enum! {
+    /// The processes of the set.
+    #[derive(Hash, PartialOrd, Ord)]
+    pub enum ServiceId: u32 {
+        Plant = 1 => "plant",
+        Vision = 2 => "vision",
+        Flow = 3 => "flow",
+        Control = 4 => "control",
+        Coilbus = 5 => "coilbus",
+        Supervisor = 6 => "supervisor",
+        Camera = 7 => "camera",
+    }
 }
 
 impl ServiceId {
-    pub const ALL: [ServiceId; 7] = [
-        Self::Plant,
-        Self::Camera,
-        Self::Vision,
-        Self::Flow,
-        Self::Control,
-        Self::Coilbus,
-        Self::Supervisor,
-    ];
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Plant => "plant",
-            Self::Vision => "vision",
-            Self::Flow => "flow",
-            Self::Control => "control",
-            Self::Coilbus => "coilbus",
-            Self::Supervisor => "supervisor",
-            Self::Camera => "camera",
-        }
-    }
-
     pub fn from_name(name: &str) -> Option<Self> {
         Self::ALL.into_iter().find(|s| s.name() == name)
-    }
-
-    pub fn from_u32(value: u32) -> Option<Self> {
-        Self::ALL.into_iter().find(|s| *s as u32 == value)
     }
 
     /// Event service on which this process signals liveness.
@@ -1110,7 +980,38 @@ mod tests {
     fn service_names_round_trip() {
         for id in ServiceId::ALL {
             assert_eq!(ServiceId::from_name(id.name()), Some(id));
-            assert_eq!(ServiceId::from_u32(id as u32), Some(id));
+            assert_eq!(ServiceId::from_repr(id as u32), Some(id));
         }
+    }
+
+    #[test]
+    fn every_wire_enum_round_trips_and_names_each_variant_once() {
+        macro_rules! check {
+            ($($name:ident: $repr:ty),+) => {$(
+                let mut names = std::collections::BTreeSet::new();
+                for v in $name::ALL {
+                    assert_eq!($name::from_repr(v as $repr), Some(v), "{}", stringify!($name));
+                    assert!(names.insert(v.name()), "{}: {} twice", stringify!($name), v.name());
+                }
+                let unused = (0..=<$repr>::from(u8::MAX))
+                    .find(|n| !$name::ALL.iter().any(|v| *v as $repr == *n))
+                    .unwrap();
+                assert_eq!($name::from_repr(unused), None, "{}", stringify!($name));
+            )+};
+        }
+        check!(
+            PixelFormat: u32,
+            PoseSource: u32,
+            ControlMode: u32,
+            LinkState: u32,
+            BoardFault: u8,
+            BoardState: u8,
+            OperatorVerb: u32,
+            OperatorState: u32,
+            ServiceId: u32
+        );
+        assert_eq!(board_state_name(BoardState::EStop as u8), "estop");
+        assert_eq!(board_state_name(BOARD_STATE_UNKNOWN), "unknown");
+        assert_eq!(board_state_name(200), "invalid");
     }
 }

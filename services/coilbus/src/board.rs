@@ -123,7 +123,7 @@ impl BoardMonitor {
 
     /// Checks one `Status`; returns the fault it latched, if it latched one now.
     pub fn on_status(&mut self, status: &BoardStatus) -> Option<&Fault> {
-        let state = BoardState::from_u8(status.state);
+        let state = BoardState::from_repr(status.state);
         if state == Some(BoardState::Armed) && self.state != state {
             // Commands sent before the board armed were refused (`NotArmed`): compare only
             // with what comes after.

@@ -205,7 +205,7 @@ impl CoilBus {
             return None;
         }
         let zeros = [0.0; MAX_COILS];
-        let requested = match ControlMode::from_u32(cmd.mode) {
+        let requested = match ControlMode::from_repr(cmd.mode) {
             Some(ControlMode::Track) | Some(ControlMode::Hold) => requested,
             // Safe, or a mode this build does not know: zero.
             _ => &zeros[..self.coil_count],

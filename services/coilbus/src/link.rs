@@ -246,7 +246,7 @@ impl SerialLink {
                 }
                 let packets = self.decoder.push(&buf[..n]);
                 let newest = packets.iter().rev().find_map(|p| match &p.message {
-                    Message::Status(st) => BoardState::from_u8(st.state),
+                    Message::Status(st) => BoardState::from_repr(st.state),
                     _ => None,
                 });
                 if let Some(state) = newest {

@@ -120,7 +120,7 @@ impl Operator {
         if let Some(last) = self.last.filter(|l| l.request_id == request.request_id) {
             return Some(last);
         }
-        let outcome = match OperatorVerb::from_u32(request.verb) {
+        let outcome = match OperatorVerb::from_repr(request.verb) {
             None => Err(format!("unknown verb {}", request.verb)),
             Some(verb) => self.apply(verb, request, reference, now_s),
         };

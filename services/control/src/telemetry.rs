@@ -89,8 +89,8 @@ pub(crate) fn log_operator(
     reply: &OperatorReply,
     now_s: f64,
 ) -> anyhow::Result<()> {
-    let verb = OperatorVerb::from_u32(request.verb).map_or("unknown", OperatorVerb::name);
-    let state = OperatorState::from_u32(reply.state).map_or("unknown", OperatorState::name);
+    let verb = OperatorVerb::from_repr(request.verb).map_or("unknown", OperatorVerb::name);
+    let state = OperatorState::from_repr(reply.state).map_or("unknown", OperatorState::name);
     let accepted = reply.accepted == Flag::TRUE;
     let row = OperatorEventRow {
         time_s: now_s,

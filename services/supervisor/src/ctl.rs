@@ -119,7 +119,7 @@ pub fn send(
 
 /// The answer as the operator reads it.
 pub fn describe(verb: OperatorVerb, reply: &OperatorReply) -> String {
-    let state = OperatorState::from_u32(reply.state).map_or("unknown", OperatorState::name);
+    let state = OperatorState::from_repr(reply.state).map_or("unknown", OperatorState::name);
     let at = |p: [f64; 2]| {
         if p[0].is_finite() && p[1].is_finite() {
             format!("({:.2}, {:.2}) mm", p[0] * 1e3, p[1] * 1e3)

@@ -844,7 +844,7 @@ impl Supervisor {
     fn facts(&self, ending: &anyhow::Result<Ending>, context: &SummaryContext) -> RunFacts {
         let mut deadline_misses = BTreeMap::new();
         for ((service, _), misses) in &self.deadline_misses {
-            if let Some(id) = ServiceId::from_u32(*service) {
+            if let Some(id) = ServiceId::from_repr(*service) {
                 *deadline_misses.entry(id.name().to_string()).or_insert(0) += misses;
             }
         }
@@ -1210,7 +1210,7 @@ fn take_health(
 ) -> anyhow::Result<()> {
     let now = Instant::now();
     for beat in heartbeats.health.receive_all()? {
-        if let Some(id) = ServiceId::from_u32(beat.service) {
+        if let Some(id) = ServiceId::from_repr(beat.service) {
             supervisor.note_started(id, beat.incarnation, now);
         }
         supervisor
@@ -1223,7 +1223,7 @@ fn take_health(
             .filter(|b| b.incarnation == beat.incarnation)
             .map_or(0, |b| b.source_faults);
         if beat.source_faults > earlier {
-            if let Some(id) = ServiceId::from_u32(beat.service) {
+            if let Some(id) = ServiceId::from_repr(beat.service) {
                 supervisor.events.record(
                     id,
                     "source_fault",
@@ -1268,7 +1268,7 @@ impl BoardView {
         }
         if self.fault != Some(status.board_fault) {
             self.fault = Some(status.board_fault);
-            let name = BoardFault::from_u8(status.board_fault).map_or("invalid", |f| f.name());
+            let name = BoardFault::from_repr(status.board_fault).map_or("invalid", |f| f.name());
             if status.board_fault != BoardFault::None as u8 {
                 tracing::warn!(fault = name, "coilbus holds the coils at zero: board fault");
                 events.record(ServiceId::Coilbus, "board_fault", name);
@@ -1312,7 +1312,7 @@ fn record_health(rt: &Runtime, latest_health: &BTreeMap<u32, Heartbeat>) {
     rt.rec
         .set_duration_secs(recording::RUN_TIMELINE, rt.env.run_clock_ns() as f64 * 1e-9);
     for (service, beat) in latest_health {
-        if let Some(id) = ServiceId::from_u32(*service) {
+        if let Some(id) = ServiceId::from_repr(*service) {
             recording::scalar(
                 &rt.rec,
                 &format!("health/{}/deadline_misses", id.name()),

@@ -34,8 +34,9 @@ use crc::{Crc, CRC_16_IBM_3740};
 /// the version byte and carries the coil count in `SetCurrents` and `Telemetry`.
 pub const PROTOCOL_VERSION: u8 = 2;
 
+use shm_schemas_core::wire_enum;
 /// Most coils one frame can address: the contract's limit.
-pub use shm_schemas_core::MAX_COILS;
+pub use shm_schemas_core::{BoardState, MAX_COILS};
 
 pub const SYNC: [u8; 2] = [0xA5, 0x5A];
 pub const HEADER_LEN: usize = 2 + 1 + 1 + 2 + 4;
@@ -105,32 +106,16 @@ impl CoilValues {
     }
 }
 
-#[repr(u8)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum MessageKind {
-    SetCurrents = 0x01,
-    Ack = 0x02,
-    Telemetry = 0x03,
-    Arm = 0x04,
-    Disarm = 0x05,
-    EStop = 0x06,
-    Config = 0x07,
-    Status = 0x08,
-}
-
-impl MessageKind {
-    fn from_u8(value: u8) -> Option<Self> {
-        match value {
-            0x01 => Some(Self::SetCurrents),
-            0x02 => Some(Self::Ack),
-            0x03 => Some(Self::Telemetry),
-            0x04 => Some(Self::Arm),
-            0x05 => Some(Self::Disarm),
-            0x06 => Some(Self::EStop),
-            0x07 => Some(Self::Config),
-            0x08 => Some(Self::Status),
-            _ => None,
-        }
+wire_enum! {
+    pub enum MessageKind: u8 {
+        SetCurrents = 0x01 => "set_currents",
+        Ack = 0x02 => "ack",
+        Telemetry = 0x03 => "telemetry",
+        Arm = 0x04 => "arm",
+        Disarm = 0x05 => "disarm",
+        EStop = 0x06 => "estop",
+        Config = 0x07 => "config",
+        Status = 0x08 => "status",
     }
 }
 
@@ -233,35 +218,6 @@ impl BoardStatus {
     }
 }
 
-/// `BoardStatus.state`: the board's safety state.
-#[repr(u8)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum BoardState {
-    /// No valid `Config` yet: outputs off, `SetCurrents` refused.
-    Unconfigured = 0,
-    /// Configured, outputs off; `Arm` (with [`ARM_KEY`]) arms.
-    Disarmed = 1,
-    /// Outputs follow `SetCurrents`.
-    Armed = 2,
-    /// Latched: outputs off until a deliberate re-arm (or a reset), whatever else arrives.
-    EStop = 3,
-    /// A coil spent its I²t budget: outputs off until it cooled and the host re-arms.
-    ThermalTrip = 4,
-}
-
-impl BoardState {
-    pub fn from_u8(value: u8) -> Option<Self> {
-        match value {
-            0 => Some(Self::Unconfigured),
-            1 => Some(Self::Disarmed),
-            2 => Some(Self::Armed),
-            3 => Some(Self::EStop),
-            4 => Some(Self::ThermalTrip),
-            _ => None,
-        }
-    }
-}
-
 /// `BoardStatus.flags`: the watchdog has zeroed the outputs.
 pub const STATUS_WATCHDOG: u8 = 1;
 /// At least one channel was clamped to its limit.
@@ -273,18 +229,18 @@ pub const STATUS_ESTOP_INPUT: u8 = 1 << 3;
 /// The last `Config` was refused (see the board's limits).
 pub const STATUS_CONFIG_REFUSED: u8 = 1 << 4;
 
-#[repr(u8)]
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum AckStatus {
-    Applied = 0,
-    /// The Teensy clamped at least one channel to its own hardware limit.
-    Clamped = 1,
-    /// The frame's coil count is not the board's: nothing was applied (outputs unchanged,
-    /// and the frame does not feed the watchdog).
-    RejectedCoilCount = 2,
-    /// The board is not armed (unconfigured, disarmed, e-stopped or thermally tripped):
-    /// nothing applied, outputs stay off.
-    NotArmed = 3,
+wire_enum! {
+    pub enum AckStatus: u8 {
+        Applied = 0 => "applied",
+        /// The Teensy clamped at least one channel to its own hardware limit.
+        Clamped = 1 => "clamped",
+        /// The frame's coil count is not the board's: nothing was applied (outputs unchanged,
+        /// and the frame does not feed the watchdog).
+        RejectedCoilCount = 2 => "rejected_coil_count",
+        /// The board is not armed (unconfigured, disarmed, e-stopped or thermally tripped):
+        /// nothing applied, outputs stay off.
+        NotArmed = 3 => "not_armed",
+    }
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -611,7 +567,7 @@ impl Decoder {
             }
             let seq = u32::from_le_bytes([frame[6], frame[7], frame[8], frame[9]]);
             let payload = &frame[HEADER_LEN..HEADER_LEN + length];
-            match MessageKind::from_u8(frame[3]) {
+            match MessageKind::from_repr(frame[3]) {
                 None => self.counters.unknown_kind += 1,
                 Some(kind) => match parse_payload(kind, payload) {
                     Some(message) => {

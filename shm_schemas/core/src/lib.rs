@@ -5,10 +5,29 @@
 
 #![no_std]
 
+mod wire_enum;
+
 /// Largest number of coils a rig has, a payload and a serial frame carry. Arrays of coil values are
 /// this long; `active_coils` says how many leading entries are meaningful (the rest are zero).
 /// 16 covers the rigs in view (12 paper coils, an 8-coil ring, 6-coil Helmholtz/Maxwell sets).
 pub const MAX_COILS: usize = 16;
+
+wire_enum! {
+    /// The coil board's safety state: `BoardStatus.state` on the serial link, `CoilStatus::board_state`
+    /// in the contract.
+    pub enum BoardState: u8 {
+        /// No valid `Config` yet: outputs off, `SetCurrents` refused.
+        Unconfigured = 0 => "unconfigured",
+        /// Configured, outputs off; `Arm` (with the serial protocol's `ARM_KEY`) arms.
+        Disarmed = 1 => "disarmed",
+        /// Outputs follow `SetCurrents`.
+        Armed = 2 => "armed",
+        /// Latched: outputs off until a deliberate re-arm (or a reset), whatever else arrives.
+        EStop = 3 => "estop",
+        /// A coil spent its I²t budget: outputs off until it cooled and the host re-arms.
+        ThermalTrip = 4 => "thermal_trip",
+    }
+}
 
 /// The contract's image ↔ world convention, the one place it is computed (`shm_schemas::FrameHeader` and
 /// `fieldmaps::phantom::ImageGeometry` both delegate here).

@@ -67,7 +67,7 @@ impl ControlLoop {
         } else {
             command.mode = ControlMode::Safe as u32;
         }
-        self.last_mode = ControlMode::from_u32(command.mode).unwrap_or(ControlMode::Safe);
+        self.last_mode = ControlMode::from_repr(command.mode).unwrap_or(ControlMode::Safe);
         self.last_tracked = Some((actuation_ns, command.currents_a));
         self.record_issued(actuation_ns, command.currents_a);
         let field = hold.then_some(self.field_heading_rad);

@@ -27,7 +27,7 @@ fn pose(seq: u64, t_s: f64, x: f64, y: f64) -> Pose {
 }
 
 fn mode(d: &Decision) -> ControlMode {
-    ControlMode::from_u32(d.command.mode).unwrap()
+    ControlMode::from_repr(d.command.mode).unwrap()
 }
 
 #[test]
