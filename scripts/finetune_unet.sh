@@ -48,7 +48,7 @@ fi
 
 evaluate() {
   [ "${SKIP_EVAL:-0}" = 1 ] && { echo "(evaluation skipped: SKIP_EVAL=1)"; return; }
-  [ -x "$BIN/vision-eval" ] || die "no $BIN/vision-eval: cargo build --release -p millinav-vision (or SKIP_EVAL=1)"
+  [ -x "$BIN/vision-eval" ] || die "no $BIN/vision-eval: cargo build --release -p millinav-vision-eval (or SKIP_EVAL=1)"
   "$BIN/vision-eval" --split "$SPLIT/val" --model "$1" "${RIG_ARGS[@]}" --out "$2" >/dev/null
   grep -E "^\| (unet|localizer)" "$2"
 }

@@ -7,7 +7,7 @@ inside what the model saw: scale and shift (camera height, tracking offset), par
 saturation, half-plane shadow and illumination gradient, specular glare, air bubbles, floor
 texture, motion and defocus blur, sensor noise, JPEG (8x8 DCT quantization with chroma 4:2:0).
 
-This is its own implementation, not the suite's (services/vision/src/perturb.rs, Rust/OpenCV):
+This is its own implementation, not the suite's (tools/vision_eval/src/perturb.rs, Rust/OpenCV):
 the suite measures what this teaches, so the two share the families, not the code or ranges.
 All functions take and return image (N,3,H,W) float in [0,1], mask (N,H,W) and keypoints
 (N,3,2) in input pixels, and draw from `r` (a _Draws on a jax.random key); camera_shifts runs

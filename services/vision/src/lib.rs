@@ -3,9 +3,7 @@
 //! confident, unambiguous detection yields an invalid pose, never a guess.
 
 pub mod classical;
-pub mod eval;
 pub mod ort_version;
-pub mod perturb;
 pub mod unet;
 
 use fieldmaps::rigfile::Rig;

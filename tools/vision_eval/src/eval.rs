@@ -8,8 +8,8 @@ use millinav_roi::dataset::Split;
 use millinav_roi::roi::{Crop, DOWNSAMPLE, INPUT_PX};
 use opencv::prelude::*;
 
-use crate::classical::{ClassicalLocalizer, LocalizeError};
-use crate::unet::{detection_from_output, UnetLocalizer};
+use millinav_vision::classical::{ClassicalLocalizer, LocalizeError};
+use millinav_vision::unet::{detection_from_output, UnetLocalizer};
 
 /// Metrics of one localizer over a split.
 #[derive(Debug, Clone, Default)]

@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 
 use millinav_roi::dataset::Split;
 use millinav_vision::classical::CapsuleSize;
-use millinav_vision::eval::{evaluate_unet, table};
 use millinav_vision::unet::{find_onnxruntime, UnetError, UnetLocalizer};
+use millinav_vision_eval::eval::{evaluate_unet, table};
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")

@@ -7,11 +7,11 @@ use clap::Parser;
 use indicatif::{ProgressBar, ProgressStyle};
 use millinav_roi::dataset::Split;
 use millinav_vision::classical::{CapsuleSize, ClassicalLocalizer};
-use millinav_vision::eval::{
+use millinav_vision::unet::{find_onnxruntime, UnetLocalizer};
+use millinav_vision_eval::eval::{
     evaluate_classical, evaluate_unet, robustness, robustness_table, table, Report,
 };
-use millinav_vision::perturb::Family;
-use millinav_vision::unet::{find_onnxruntime, UnetLocalizer};
+use millinav_vision_eval::perturb::Family;
 
 /// Prints precision, recall, IoU, detection rates, keypoint errors (mm) and per-crop latency of
 /// the UNet and the classical localizer on a split made by `unet-dataset` (e.g.
