@@ -62,6 +62,35 @@ fn is_tool_or_test(root: &Path, member: &Member) -> bool {
     rel.starts_with("tools") || rel.starts_with("tests")
 }
 
+/// A service process: a member under `services/` with a `main.rs` of its own.
+fn is_service_process(root: &Path, member: &Member) -> bool {
+    let rel = member.dir.strip_prefix(root).unwrap_or(&member.dir);
+    rel.starts_with("services") && member.dir.join("src/main.rs").exists()
+}
+
+#[test]
+fn no_service_process_builds_on_another() {
+    // What two processes share lives in a library (kit, the contract, the protocol), so one
+    // service's internals never become another's API.
+    let root = workspace_root();
+    let members = members();
+    let processes: Vec<&String> = members
+        .iter()
+        .filter(|(_, m)| is_service_process(&root, m))
+        .map(|(name, _)| name)
+        .collect();
+    assert!(processes.len() >= 6, "found only {processes:?}");
+    let mut arrows = Vec::new();
+    for name in &processes {
+        for dep in &members[*name].normal {
+            if members.get(dep).is_some_and(|d| is_service_process(&root, d)) {
+                arrows.push(format!("{name} -> {dep}"));
+            }
+        }
+    }
+    assert!(arrows.is_empty(), "services building on another service: {arrows:?}");
+}
+
 #[test]
 fn no_library_or_service_depends_on_a_tool() {
     let root = workspace_root();

@@ -357,40 +357,6 @@ impl Camera<'_> {
     }
 }
 
-/// A packed RGB camera image for the Rerun recording: JPEG at `quality` (1–100), raw pixels at 0 or when
-/// encoding fails.
-pub fn recorded_image(
-    rgb: Vec<u8>,
-    w: usize,
-    h: usize,
-    quality: u8,
-) -> Box<dyn rerun::AsComponents> {
-    if quality > 0 {
-        let encoded = (|| -> opencv::Result<Vec<u8>> {
-            let mut mat = opencv::core::Mat::new_rows_cols_with_default(
-                h as i32,
-                w as i32,
-                opencv::core::CV_8UC3,
-                0.0.into(),
-            )?;
-            mat.data_bytes_mut()?.copy_from_slice(&rgb);
-            let mut bgr = opencv::core::Mat::default();
-            opencv::imgproc::cvt_color(&mat, &mut bgr, opencv::imgproc::COLOR_RGB2BGR, 0)?;
-            let mut buf = opencv::core::Vector::<u8>::new();
-            let params = opencv::core::Vector::<i32>::from_slice(&[
-                opencv::imgcodecs::IMWRITE_JPEG_QUALITY,
-                i32::from(quality.min(100)),
-            ]);
-            opencv::imgcodecs::imencode(".jpg", &bgr, &mut buf, &params)?;
-            Ok(buf.to_vec())
-        })();
-        if let Ok(bytes) = encoded {
-            return Box::new(rerun::EncodedImage::from_file_contents(bytes));
-        }
-    }
-    Box::new(rerun::Image::from_rgb24(rgb, [w as u32, h as u32]))
-}
-
 /// The raw frame into the recording (JPEG, so a 1 MP frame costs ~0.3 MB, not 3).
 fn log_raw(rec: &rerun::RecordingStream, frame: &RawFrame, jpeg_quality: u8) {
     let (w, h) = (frame.image.cols() as usize, frame.image.rows() as usize);
@@ -408,7 +374,7 @@ fn log_raw(rec: &rerun::RecordingStream, frame: &RawFrame, jpeg_quality: u8) {
     recording::set_time(rec, frame.stamp.capture_time_ns, frame.stamp.seq);
     let _ = rec.log(
         "camera_raw/image",
-        recorded_image(rgb, w, h, jpeg_quality).as_ref(),
+        recording::camera_image(rgb, w, h, jpeg_quality).as_ref(),
     );
 }
 

@@ -79,3 +79,57 @@ pub fn join_recordings(run_dir: &Path, out: &Path) -> Result<usize, KitError> {
     }
     Ok(parts.len())
 }
+
+/// A packed RGB camera image (`w`×`h`, 3 bytes a pixel) as the recording holds it: JPEG at
+/// `quality` (1–100, the viewer's bandwidth and the file's size), the raw pixels at 0 or when
+/// encoding fails.
+pub fn camera_image(rgb: Vec<u8>, w: usize, h: usize, quality: u8) -> Box<dyn rerun::AsComponents> {
+    match (quality > 0).then(|| jpeg(&rgb, w, h, quality)).flatten() {
+        Some(bytes) => Box::new(rerun::EncodedImage::from_file_contents(bytes)),
+        None => Box::new(rerun::Image::from_rgb24(rgb, [w as u32, h as u32])),
+    }
+}
+
+/// `rgb` (`w`×`h`, 3 bytes a pixel) as a JPEG file at `quality` (clamped to 1–100); `None` when
+/// the pixels are not `w`×`h` or do not encode.
+pub fn jpeg(rgb: &[u8], w: usize, h: usize, quality: u8) -> Option<Vec<u8>> {
+    if rgb.len() != w * h * 3 {
+        return None;
+    }
+    let (w, h) = (u32::try_from(w).ok()?, u32::try_from(h).ok()?);
+    let mut bytes = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, quality.clamp(1, 100))
+        .encode(rgb, w, h, image::ExtendedColorType::Rgb8)
+        .ok()?;
+    Some(bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_camera_image_encodes_to_a_jpeg_that_decodes_to_its_pixels() {
+        let (w, h) = (48usize, 32usize);
+        let rgb: Vec<u8> = (0..w * h)
+            .flat_map(|i| {
+                let (x, y) = (i % w, i / w);
+                [(x * 5) as u8, (y * 7) as u8, 128]
+            })
+            .collect();
+        let bytes = jpeg(&rgb, w, h, 90).expect("encodes");
+        assert_eq!(&bytes[..2], &[0xFF, 0xD8], "a JPEG starts with SOI");
+        let decoded = image::load_from_memory_with_format(&bytes, image::ImageFormat::Jpeg)
+            .expect("decodes")
+            .to_rgb8();
+        assert_eq!((decoded.width(), decoded.height()), (w as u32, h as u32));
+        let worst = rgb
+            .iter()
+            .zip(decoded.as_raw())
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap();
+        assert!(worst <= 24, "largest pixel error {worst}");
+        assert_eq!(jpeg(&rgb[1..], w, h, 90), None, "pixels not w×h×3");
+    }
+}

@@ -270,7 +270,7 @@ fn log_frame(
     let step = config.image_log_downsample.max(1) as usize;
     if log_image {
         let small = downsample(rgb, w, h, step);
-        let image = millinav_camera::recorded_image(
+        let image = millinav_kit::recording::camera_image(
             small,
             w / step,
             h / step,
