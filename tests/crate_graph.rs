@@ -83,12 +83,18 @@ fn no_service_process_builds_on_another() {
     let mut arrows = Vec::new();
     for name in &processes {
         for dep in &members[*name].normal {
-            if members.get(dep).is_some_and(|d| is_service_process(&root, d)) {
+            if members
+                .get(dep)
+                .is_some_and(|d| is_service_process(&root, d))
+            {
                 arrows.push(format!("{name} -> {dep}"));
             }
         }
     }
-    assert!(arrows.is_empty(), "services building on another service: {arrows:?}");
+    assert!(
+        arrows.is_empty(),
+        "services building on another service: {arrows:?}"
+    );
 }
 
 #[test]

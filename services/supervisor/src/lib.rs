@@ -6,9 +6,11 @@
 pub mod ctl;
 pub mod front_door;
 pub mod launch;
+mod monitor;
 pub mod preflight;
 pub mod realtime;
 pub mod restart;
+mod viewer;
 
 use std::collections::BTreeMap;
 use std::os::unix::process::CommandExt;
@@ -37,11 +39,10 @@ use crate::preflight::{CheckFailure, CheckTarget};
 use crate::restart::{
     classify_exit, silent_too_long, startup_progress, Backoff, ExitKind, Startup, StormWatch,
 };
+use monitor::{monitor, Heartbeats};
+pub use viewer::{merge_recordings, which, VIEWER_PORT};
+use viewer::{start_viewer, viewer_layout};
 
-/// Port of the Rerun viewer the supervisor spawns (Rerun's default gRPC port).
-pub const VIEWER_PORT: u16 = 9876;
-/// Time a freshly spawned viewer gets to open its port before the services connect.
-const VIEWER_STARTUP_WAIT: Duration = Duration::from_millis(1500);
 /// Time a child gets between SIGTERM and SIGKILL at shutdown (coilbus zeroes the coils in it).
 const CHILD_STOP_GRACE: Duration = Duration::from_secs(5);
 /// How often a stopping child is polled.
@@ -595,89 +596,6 @@ impl Supervisor {
     }
 }
 
-/// Starts a Rerun viewer when asked (or when `auto` and one is usable); returns its gRPC URL.
-fn start_viewer(mode: ViewerMode) -> anyhow::Result<Option<(Child, String)>> {
-    let has_display =
-        std::env::var_os("DISPLAY").is_some() || std::env::var_os("WAYLAND_DISPLAY").is_some();
-    let wanted = match mode {
-        ViewerMode::None => false,
-        ViewerMode::Spawn => true,
-        ViewerMode::Auto => has_display && which("rerun").is_some(),
-    };
-    if !wanted {
-        return Ok(None);
-    }
-    let Some(rerun_bin) = which("rerun") else {
-        bail!("--viewer spawn: no `rerun` executable on PATH (pip install rerun-sdk==0.36.3)");
-    };
-    let child = Command::new(rerun_bin)
-        .arg("--port")
-        .arg(VIEWER_PORT.to_string())
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .process_group(0)
-        .spawn()
-        .context("spawning the Rerun viewer")?;
-    // Give the viewer a moment to open its port before the services connect.
-    std::thread::sleep(VIEWER_STARTUP_WAIT);
-    Ok(Some((
-        child,
-        format!("rerun+http://127.0.0.1:{VIEWER_PORT}/proxy"),
-    )))
-}
-
-/// Finds an executable on PATH.
-pub fn which(name: &str) -> Option<PathBuf> {
-    std::env::var_os("PATH").and_then(|paths| {
-        std::env::split_paths(&paths)
-            .map(|dir| dir.join(name))
-            .find(|candidate| candidate.is_file())
-    })
-}
-
-/// Joins the per-process recordings into `<run_dir>/run.rrd` with the Rerun CLI when it is
-/// installed (`rerun rrd merge`), otherwise leaves them in `<run_dir>/rrd/` and says so.
-pub fn merge_recordings(run_dir: &Path) -> anyhow::Result<Option<PathBuf>> {
-    let dir = recording::rrd_dir(run_dir);
-    let mut parts: Vec<PathBuf> = match std::fs::read_dir(&dir) {
-        Ok(entries) => entries
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.extension().is_some_and(|x| x == "rrd"))
-            .collect(),
-        Err(_) => return Ok(None),
-    };
-    parts.sort();
-    if parts.is_empty() {
-        return Ok(None);
-    }
-    let Some(rerun_bin) = which("rerun") else {
-        tracing::warn!(
-            "`rerun` CLI not found: recordings left as parts in {} (open them together in the viewer)",
-            dir.display()
-        );
-        return Ok(None);
-    };
-    let out = run_dir.join("run.rrd");
-    let status = Command::new(rerun_bin)
-        .args(["rrd", "merge"])
-        .args(&parts)
-        .arg("-o")
-        .arg(&out)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .output()
-        .context("running `rerun rrd merge`")?;
-    if !status.status.success() {
-        bail!(
-            "`rerun rrd merge` failed: {}",
-            String::from_utf8_lossy(&status.stderr).trim()
-        );
-    }
-    Ok(Some(out))
-}
-
 /// What `run` settles before anything starts.
 struct Plan {
     scenario: Scenario,
@@ -685,17 +603,6 @@ struct Plan {
     run_dir: PathBuf,
     /// Each process's executable, in launch order.
     executables: Vec<PathBuf>,
-}
-
-/// The heartbeat and health ports the supervisor listens on.
-struct Heartbeats {
-    listeners: Vec<(ServiceId, Listener<ipc::Service>)>,
-    health: Inbox<Heartbeat>,
-    /// coilbus's status: the coil-driver board's state, faults and heat.
-    coil_status: Inbox<CoilStatus>,
-    /// Operator requests: the supervisor answers `stop` (control the rest).
-    operator: Inbox<OperatorRequest>,
-    operator_replies: Outbox<OperatorReply>,
 }
 
 /// Runs the set until the plant finishes, a signal arrives, a child rejects its
@@ -798,39 +705,6 @@ fn is_set_node(name: &str) -> bool {
     name.rsplit_once('-').is_some_and(|(service, incarnation)| {
         ServiceId::from_name(service).is_some() && incarnation.parse::<u64>().is_ok()
     })
-}
-
-/// The viewer's layout, sent with the recording: camera with its overlays and the top view
-/// with paths and flow on the left; the 3D rig, the control series (error, force, d̂, currents)
-/// and health and events on the right.
-fn viewer_layout() -> rerun::blueprint::Blueprint {
-    use rerun::blueprint::{
-        Blueprint, Horizontal, Spatial2DView, Spatial3DView, Tabs, TextLogView, TimeSeriesView,
-        Vertical,
-    };
-    let series = |name: &str, origin: &str| TimeSeriesView::new(name).with_origin(origin).into();
-    Blueprint::new(Horizontal::new([
-        Vertical::new([
-            Spatial2DView::new("camera").with_origin("/camera").into(),
-            Spatial2DView::new("top view (mm)")
-                .with_origin("/world")
-                .into(),
-        ])
-        .into(),
-        Vertical::new([
-            Spatial3DView::new("rig (mm)").with_origin("/rig3d").into(),
-            Tabs::new([
-                series("error (mm)", "/control/error_mm"),
-                series("force (N)", "/control/force_des_n"),
-                series("d̂ (N)", "/control/d_hat_n"),
-                series("currents (A)", "/control/current_a"),
-                series("health", "/health"),
-            ])
-            .into(),
-            TextLogView::new("events").with_origin("/supervisor").into(),
-        ])
-        .into(),
-    ]))
 }
 
 /// What the run summary needs from `run` beyond the supervisor.
@@ -999,26 +873,6 @@ impl Supervisor {
     }
 }
 
-impl Heartbeats {
-    fn connect(rt: &Runtime, processes: &[ManagedProcess]) -> anyhow::Result<Self> {
-        let listeners = processes
-            .iter()
-            .map(|p| Ok((p.id, heartbeat_listener(&rt.node, p.id)?)))
-            .collect::<anyhow::Result<_>>()?;
-        let health = Inbox::<Heartbeat>::new(&rt.node, services::HEALTH)?;
-        let coil_status = Inbox::<CoilStatus>::new(&rt.node, services::COIL_STATUS)?;
-        let operator = Inbox::<OperatorRequest>::new(&rt.node, services::OPERATOR_REQUEST)?;
-        let operator_replies = Outbox::<OperatorReply>::new(&rt.node, services::OPERATOR_REPLY)?;
-        Ok(Self {
-            listeners,
-            health,
-            coil_status,
-            operator,
-            operator_replies,
-        })
-    }
-}
-
 /// Stops the set safe-state first, leaves the viewer to the user, merges the recordings, and
 /// turns the ending into the run's result.
 fn finish(
@@ -1101,235 +955,5 @@ fn leave_nothing_behind(domain: &Domain) {
             "nodes are still connected to the set's prefix: its iceoryx2 files stay"
         ),
         Err(e) => tracing::warn!("could not list the set's iceoryx2 nodes: {e}"),
-    }
-}
-
-fn monitor(
-    supervisor: &mut Supervisor,
-    rt: &Runtime,
-    heartbeats: &Heartbeats,
-) -> anyhow::Result<Ending> {
-    let waitset = WaitSetBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(millinav_kit::iox("waitset"))?;
-    let guards = heartbeats
-        .listeners
-        .iter()
-        .map(|(id, listener)| {
-            waitset
-                .attach_deadline(listener, deadlines::HEARTBEAT)
-                .map(|g| (*id, g))
-                .map_err(millinav_kit::iox("attach heartbeat"))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let _tick = waitset
-        .attach_interval(MONITOR_TICK)
-        .map_err(millinav_kit::iox("attach tick"))?;
-    let start = Instant::now();
-    let mut latest_health: BTreeMap<u32, Heartbeat> = BTreeMap::new();
-    let mut board = BoardView::default();
-    loop {
-        let mut beating = Vec::new();
-        let result = waitset
-            .wait_and_process_once_with_timeout(
-                |attachment| {
-                    for (id, guard) in &guards {
-                        if attachment.has_event_from(guard) {
-                            beating.push(*id);
-                        }
-                    }
-                    CallbackProgression::Continue
-                },
-                MONITOR_TICK,
-            )
-            .map_err(millinav_kit::iox("waitset"))?;
-        // A SIGCONT (the shell's `fg`, systemd after its SIGTERM) interrupts the wait too, and
-        // may have erased iceoryx2's record of a SIGTERM before it: the kit's flag decides.
-        if millinav_kit::termination::waitset_says_stop(&result) {
-            supervisor
-                .events
-                .record(ServiceId::Supervisor, "signal", "shutting down");
-            return Ok(Ending::Signal);
-        }
-        let now = Instant::now();
-        note_heartbeats(supervisor, heartbeats, &mut beating, now);
-        take_health(supervisor, heartbeats, &mut latest_health)?;
-        for request in heartbeats.operator.receive_all()? {
-            if request.verb == OperatorVerb::Stop as u32 {
-                let reply = OperatorReply::new(
-                    request.request_id,
-                    true,
-                    OperatorState::Stopping,
-                    "stopping the set: control and coilbus first, coils to zero",
-                );
-                heartbeats.operator_replies.update_connections();
-                heartbeats.operator_replies.send(reply)?;
-                supervisor.events.record(
-                    ServiceId::Supervisor,
-                    "operator_stop",
-                    "millinav ctl stop",
-                );
-                return Ok(Ending::OperatorStop);
-            }
-        }
-        for status in heartbeats.coil_status.receive_all()? {
-            if let Some(fault) = board.observe(&status, &mut supervisor.events, &rt.rec) {
-                return Ok(Ending::BoardFault(fault));
-            }
-        }
-        if let Some(ending) = supervisor.reap(&rt.node)? {
-            // A process's last heartbeat (e.g. the camera's end-of-stream fault) may have
-            // arrived since the read above.
-            take_health(supervisor, heartbeats, &mut latest_health)?;
-            return Ok(ending);
-        }
-        // A started process that stopped beating is hung (or stopped): kill it; reap restarts
-        // it. One still starting only has its budget.
-        if let Some(ending) = supervisor.watch_children(now) {
-            return Ok(ending);
-        }
-        supervisor.restart_due()?;
-        record_health(rt, &latest_health);
-        if start.elapsed() > supervisor.options.max_wall_time {
-            supervisor.events.record(
-                ServiceId::Supervisor,
-                "wall_time_limit",
-                &format!("{:?}", supervisor.options.max_wall_time),
-            );
-            return Ok(Ending::WallTimeLimit);
-        }
-    }
-}
-
-/// Reads the health records that arrived: deadline misses per incarnation, and a supervisor
-/// event for each new source fault.
-fn take_health(
-    supervisor: &mut Supervisor,
-    heartbeats: &Heartbeats,
-    latest_health: &mut BTreeMap<u32, Heartbeat>,
-) -> anyhow::Result<()> {
-    let now = Instant::now();
-    for beat in heartbeats.health.receive_all()? {
-        if let Some(id) = ServiceId::from_repr(beat.service) {
-            supervisor.note_started(id, beat.incarnation, now);
-        }
-        supervisor
-            .deadline_misses
-            .insert((beat.service, beat.incarnation), beat.deadline_misses);
-        // A source fault (a camera that stalled, was unplugged or ended) goes into the
-        // run's events; the service's own event log says why.
-        let earlier = latest_health
-            .get(&beat.service)
-            .filter(|b| b.incarnation == beat.incarnation)
-            .map_or(0, |b| b.source_faults);
-        if beat.source_faults > earlier {
-            if let Some(id) = ServiceId::from_repr(beat.service) {
-                supervisor.events.record(
-                    id,
-                    "source_fault",
-                    &format!(
-                        "faults={} dropped_frames={} (details: {}_events.csv)",
-                        beat.source_faults,
-                        beat.dropped_samples,
-                        id.name()
-                    ),
-                );
-            }
-        }
-        latest_health.insert(beat.service, beat);
-    }
-    Ok(())
-}
-
-/// The coil-driver board as coilbus reports it: state and fault changes become supervisor
-/// events (`supervisor_events.csv`, Rerun `supervisor/events`), state, fault and heat go to
-/// Rerun under `health/board`.
-#[derive(Default)]
-struct BoardView {
-    state: Option<u8>,
-    fault: Option<u8>,
-}
-
-impl BoardView {
-    fn observe(
-        &mut self,
-        status: &CoilStatus,
-        events: &mut EventLog,
-        rec: &rerun::RecordingStream,
-    ) -> Option<&'static str> {
-        let mut new_fault = None;
-        if self.state != Some(status.board_state) {
-            self.state = Some(status.board_state);
-            events.record(
-                ServiceId::Coilbus,
-                "board_state",
-                board_state_name(status.board_state),
-            );
-        }
-        if self.fault != Some(status.board_fault) {
-            self.fault = Some(status.board_fault);
-            let name = BoardFault::from_repr(status.board_fault).map_or("invalid", |f| f.name());
-            if status.board_fault != BoardFault::None as u8 {
-                tracing::warn!(fault = name, "coilbus holds the coils at zero: board fault");
-                events.record(ServiceId::Coilbus, "board_fault", name);
-                new_fault = Some(name);
-            }
-        }
-        recording::scalar(rec, "health/board/state", f64::from(status.board_state));
-        recording::scalar(rec, "health/board/fault", f64::from(status.board_fault));
-        recording::scalar(
-            rec,
-            "health/board/thermal_permille",
-            f64::from(status.thermal_permille),
-        );
-        new_fault
-    }
-}
-
-/// Marks the processes that beat since the last tick (WaitSet events or pending ones).
-fn note_heartbeats(
-    supervisor: &mut Supervisor,
-    heartbeats: &Heartbeats,
-    beating: &mut Vec<ServiceId>,
-    now: Instant,
-) {
-    for (id, listener) in &heartbeats.listeners {
-        let mut got = false;
-        let _ = listener.try_wait(|_| got = true);
-        if got && !beating.contains(id) {
-            beating.push(*id);
-        }
-    }
-    for process in supervisor.processes.iter_mut() {
-        if beating.contains(&process.id) {
-            process.last_beat = now;
-        }
-    }
-}
-
-/// The run clock and each service's deadline misses, into the recording.
-fn record_health(rt: &Runtime, latest_health: &BTreeMap<u32, Heartbeat>) {
-    rt.rec
-        .set_duration_secs(recording::RUN_TIMELINE, rt.env.run_clock_ns() as f64 * 1e-9);
-    for (service, beat) in latest_health {
-        if let Some(id) = ServiceId::from_repr(*service) {
-            recording::scalar(
-                &rt.rec,
-                &format!("health/{}/deadline_misses", id.name()),
-                beat.deadline_misses as f64,
-            );
-            if id == ServiceId::Camera {
-                recording::scalar(
-                    &rt.rec,
-                    "health/camera/dropped_frames",
-                    beat.dropped_samples as f64,
-                );
-                recording::scalar(
-                    &rt.rec,
-                    "health/camera/source_faults",
-                    beat.source_faults as f64,
-                );
-            }
-        }
     }
 }
