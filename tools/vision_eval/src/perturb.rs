@@ -160,224 +160,278 @@ pub fn perturb(
     seed: u64,
 ) -> opencv::Result<(Vec<u8>, Vec<u8>, Label)> {
     let mut rng = Rng::new(seed);
+    let mut shifted = Shifted {
+        img: image.to_vec(),
+        truth: mask.to_vec(),
+        label: *label,
+    };
+    let shift = match family {
+        Family::Lighting => lighting,
+        Family::ColourCast => colour_cast,
+        Family::Background => background,
+        Family::Bubbles => bubbles,
+        Family::Glare => glare,
+        Family::Shadow => shadow,
+        Family::Blur => blur,
+        Family::Noise => noise,
+        Family::Jpeg => jpeg,
+        Family::Scale => scale,
+        Family::Occlusion => occlusion,
+    };
+    shift(&mut shifted, &mut rng, s)?;
+    Ok((shifted.img, shifted.truth, shifted.label))
+}
+
+/// A crop being shifted: its image, its truth mask and its label, changed together.
+struct Shifted {
+    img: Vec<u8>,
+    truth: Vec<u8>,
+    label: Label,
+}
+
+fn lighting(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
     let sf = f64::from(s);
-    let mut img = image.to_vec();
-    let mut truth = mask.to_vec();
-    let mut label = *label;
-    match family {
-        Family::Lighting => {
-            let gain = 1.0 + rng.sign() * 0.15 * sf;
-            let offset = rng.sign() * 10.0 * sf;
-            let gamma = 1.0 + rng.sign() * 0.15 * sf;
-            map_pixels(&mut img, |_, _, px| {
-                for v in px {
-                    let lin = (gain * f64::from(*v) + offset).clamp(0.0, 255.0) / 255.0;
-                    *v = clamp_u8(255.0 * lin.powf(gamma));
-                }
-            });
+    let gain = 1.0 + rng.sign() * 0.15 * sf;
+    let offset = rng.sign() * 10.0 * sf;
+    let gamma = 1.0 + rng.sign() * 0.15 * sf;
+    map_pixels(&mut x.img, |_, _, px| {
+        for v in px {
+            let lin = (gain * f64::from(*v) + offset).clamp(0.0, 255.0) / 255.0;
+            *v = clamp_u8(255.0 * lin.powf(gamma));
         }
-        Family::ColourCast => {
-            let k: [f64; 3] = std::array::from_fn(|_| 1.0 + rng.range(-1.0, 1.0) * 0.1 * sf);
-            map_pixels(&mut img, |_, _, px| {
-                for (v, k) in px.iter_mut().zip(k) {
-                    *v = clamp_u8(f64::from(*v) * k);
-                }
-            });
+    });
+    Ok(())
+}
+
+fn colour_cast(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    let sf = f64::from(s);
+    let k: [f64; 3] = std::array::from_fn(|_| 1.0 + rng.range(-1.0, 1.0) * 0.1 * sf);
+    map_pixels(&mut x.img, |_, _, px| {
+        for (v, k) in px.iter_mut().zip(k) {
+            *v = clamp_u8(f64::from(*v) * k);
         }
-        Family::Background => {
-            // A few random plane waves: the phantom's printed or scratched floor.
-            let waves: Vec<(f64, f64, f64, f64)> = (0..4)
-                .map(|_| {
-                    let angle = rng.range(0.0, std::f64::consts::TAU);
-                    let k = rng.range(0.08, 0.5);
-                    (
-                        k * angle.cos(),
-                        k * angle.sin(),
-                        rng.range(0.0, 6.3),
-                        rng.range(0.5, 1.0),
-                    )
-                })
-                .collect();
-            let amp = 10.0 * sf / 2.0;
-            map_pixels(&mut img, |c, r, px| {
-                if truth[r * N + c] > 0 {
-                    return;
-                }
-                let t: f64 = waves
-                    .iter()
-                    .map(|(kx, ky, ph, a)| a * (kx * c as f64 + ky * r as f64 + ph).sin())
-                    .sum();
-                for v in px {
-                    *v = clamp_u8(f64::from(*v) + amp * t);
-                }
-            });
-        }
-        Family::Bubbles => {
-            for _ in 0..2 * s {
-                let (bc, br, radius) = (
-                    rng.range(0.0, N as f64),
-                    rng.range(0.0, N as f64),
-                    rng.range(2.5, 7.0),
-                );
-                map_pixels(&mut img, |c, r, px| {
-                    let d = ((c as f64 - bc).powi(2) + (r as f64 - br).powi(2)).sqrt() / radius;
-                    // A bright thin rim, a faintly lighter inside.
-                    let lift = if (0.8..1.05).contains(&d) {
-                        90.0
-                    } else if d < 0.8 {
-                        25.0
-                    } else {
-                        0.0
-                    };
-                    for v in px {
-                        *v = clamp_u8(f64::from(*v) + lift);
-                    }
-                });
-            }
-        }
-        Family::Glare => {
-            let (gc, gr) = (
-                rng.range(0.2, 0.8) * N as f64,
-                rng.range(0.2, 0.8) * N as f64,
-            );
-            let radius = 5.0 + 3.0 * sf;
-            let peak = 70.0 * sf;
-            map_pixels(&mut img, |c, r, px| {
-                let d2 = ((c as f64 - gc).powi(2) + (r as f64 - gr).powi(2)) / (radius * radius);
-                let lift = peak * (-d2).exp();
-                for v in px {
-                    *v = clamp_u8(f64::from(*v) + lift);
-                }
-            });
-        }
-        Family::Shadow => {
+    });
+    Ok(())
+}
+
+fn background(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    let sf = f64::from(s);
+    // A few random plane waves: the phantom's printed or scratched floor.
+    let waves: Vec<(f64, f64, f64, f64)> = (0..4)
+        .map(|_| {
             let angle = rng.range(0.0, std::f64::consts::TAU);
-            let (nx, ny) = (angle.cos(), angle.sin());
-            let offset = rng.range(-0.25, 0.25) * N as f64;
-            let dark = 1.0 - 0.2 * sf;
-            let h = N as f64 / 2.0;
-            map_pixels(&mut img, |c, r, px| {
-                let d = (c as f64 - h) * nx + (r as f64 - h) * ny - offset;
-                // Soft 4 px penumbra.
-                let w = 1.0 / (1.0 + (-d / 2.0).exp());
-                let k = 1.0 - (1.0 - dark) * w;
-                for v in px {
-                    *v = clamp_u8(f64::from(*v) * k);
-                }
-            });
+            let k = rng.range(0.08, 0.5);
+            (
+                k * angle.cos(),
+                k * angle.sin(),
+                rng.range(0.0, 6.3),
+                rng.range(0.5, 1.0),
+            )
+        })
+        .collect();
+    let amp = 10.0 * sf / 2.0;
+    map_pixels(&mut x.img, |c, r, px| {
+        if x.truth[r * N + c] > 0 {
+            return;
         }
-        Family::Blur => {
-            let len = 2 * s as i32 + 1;
-            let angle = rng.range(0.0, std::f64::consts::PI);
-            let mut kernel = Mat::zeros(len, len, core::CV_32F)?.to_mat()?;
-            let c = f64::from(len - 1) / 2.0;
-            for k in 0..len {
-                let t = f64::from(k) - c;
-                let (x, y) = (
-                    (c + t * angle.cos()).round() as i32,
-                    (c + t * angle.sin()).round() as i32,
-                );
-                *kernel.at_2d_mut::<f32>(y, x)? = 1.0;
+        let t: f64 = waves
+            .iter()
+            .map(|(kx, ky, ph, a)| a * (kx * c as f64 + ky * r as f64 + ph).sin())
+            .sum();
+        for v in px {
+            *v = clamp_u8(f64::from(*v) + amp * t);
+        }
+    });
+    Ok(())
+}
+
+fn bubbles(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    for _ in 0..2 * s {
+        let (bc, br, radius) = (
+            rng.range(0.0, N as f64),
+            rng.range(0.0, N as f64),
+            rng.range(2.5, 7.0),
+        );
+        map_pixels(&mut x.img, |c, r, px| {
+            let d = ((c as f64 - bc).powi(2) + (r as f64 - br).powi(2)).sqrt() / radius;
+            // A bright thin rim, a faintly lighter inside.
+            let lift = if (0.8..1.05).contains(&d) {
+                90.0
+            } else if d < 0.8 {
+                25.0
+            } else {
+                0.0
+            };
+            for v in px {
+                *v = clamp_u8(f64::from(*v) + lift);
             }
-            let total = core::sum_elems(&kernel)?[0];
-            let mut normalized = Mat::default();
-            kernel.convert_to(&mut normalized, core::CV_32F, 1.0 / total, 0.0)?;
-            let src = to_mat(&img)?;
-            let mut dst = Mat::default();
-            imgproc::filter_2d(
-                &src,
-                &mut dst,
-                -1,
-                &normalized,
-                core::Point::new(-1, -1),
-                0.0,
-                core::BORDER_REFLECT,
-            )?;
-            img = from_mat(&dst)?;
-        }
-        Family::Noise => {
-            let sigma = 5.0 * sf;
-            map_pixels(&mut img, |_, _, px| {
-                for v in px {
-                    *v = clamp_u8(f64::from(*v) + sigma * rng.normal());
-                }
-            });
-        }
-        Family::Jpeg => {
-            let src = to_mat(&img)?;
-            let mut buf = Vector::<u8>::new();
-            let params = Vector::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, jpeg_quality(s)]);
-            imgcodecs::imencode(".jpg", &src, &mut buf, &params)?;
-            let decoded = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_COLOR)?;
-            img = from_mat(&decoded)?;
-        }
-        Family::Scale => {
-            let k = 1.0 + rng.sign() * 0.1 * sf / 3.0;
-            let h = (N as f64 - 1.0) / 2.0;
-            // p' = k (p − centre) + centre.
-            let m = Mat::from_slice_2d(&[[k, 0.0, h * (1.0 - k)], [0.0, k, h * (1.0 - k)]])?;
-            let size = core::Size::new(N as i32, N as i32);
-            let mut dst = Mat::default();
-            imgproc::warp_affine(
-                &to_mat(&img)?,
-                &mut dst,
-                &m,
-                size,
-                imgproc::INTER_LINEAR,
-                core::BORDER_REFLECT,
-                core::Scalar::default(),
-            )?;
-            img = from_mat(&dst)?;
-            // The truth is resampled linearly and cut at half, so its edge moves with the image
-            // to a fraction of a pixel (nearest-neighbour moved it by up to half a pixel).
-            let levels: Vec<u8> = truth.iter().map(|&t| if t > 0 { 255 } else { 0 }).collect();
-            let mask_mat = Mat::from_slice(&levels)?
-                .reshape(1, N as i32)?
-                .try_clone()?;
-            let mut mask_dst = Mat::default();
-            imgproc::warp_affine(
-                &mask_mat,
-                &mut mask_dst,
-                &m,
-                size,
-                imgproc::INTER_LINEAR,
-                core::BORDER_CONSTANT,
-                core::Scalar::default(),
-            )?;
-            truth = from_mat(&mask_dst)?
-                .into_iter()
-                .map(|v| u8::from(v >= 128))
-                .collect();
-            let scale = |p: (f64, f64)| (k * (p.0 - h) + h, k * (p.1 - h) + h);
-            label.tip = scale(label.tip);
-            label.centroid = scale(label.centroid);
-            label.tail = scale(label.tail);
-            // The capsule now spans k times the pixels: the world is unchanged.
-            label.mm_per_px /= k;
-        }
-        Family::Occlusion => {
-            if label.has_robot {
-                // A grey bar across the capsule at a random place along its axis.
-                let (tx, ty) = (label.tail.0, label.tail.1);
-                let (dx, dy) = (label.tip.0 - tx, label.tip.1 - ty);
-                let length = (dx * dx + dy * dy).sqrt().max(1.0);
-                let (ux, uy) = (dx / length, dy / length);
-                let hidden = 0.1 * sf * length;
-                let start = rng.range(0.0, length - hidden);
-                let grey = rng.range(90.0, 170.0);
-                map_pixels(&mut img, |c, r, px| {
-                    let (pc, pr) = (c as f64 - tx, r as f64 - ty);
-                    let along = pc * ux + pr * uy;
-                    let across = (-pc * uy + pr * ux).abs();
-                    if (start..start + hidden).contains(&along) && across < length * 0.35 {
-                        px.fill(clamp_u8(grey));
-                        truth[r * N + c] = 0;
-                    }
-                });
-            }
-        }
+        });
     }
-    Ok((img, truth, label))
+    Ok(())
+}
+
+fn glare(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    let sf = f64::from(s);
+    let (gc, gr) = (
+        rng.range(0.2, 0.8) * N as f64,
+        rng.range(0.2, 0.8) * N as f64,
+    );
+    let radius = 5.0 + 3.0 * sf;
+    let peak = 70.0 * sf;
+    map_pixels(&mut x.img, |c, r, px| {
+        let d2 = ((c as f64 - gc).powi(2) + (r as f64 - gr).powi(2)) / (radius * radius);
+        let lift = peak * (-d2).exp();
+        for v in px {
+            *v = clamp_u8(f64::from(*v) + lift);
+        }
+    });
+    Ok(())
+}
+
+fn shadow(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    let sf = f64::from(s);
+    let angle = rng.range(0.0, std::f64::consts::TAU);
+    let (nx, ny) = (angle.cos(), angle.sin());
+    let offset = rng.range(-0.25, 0.25) * N as f64;
+    let dark = 1.0 - 0.2 * sf;
+    let h = N as f64 / 2.0;
+    map_pixels(&mut x.img, |c, r, px| {
+        let d = (c as f64 - h) * nx + (r as f64 - h) * ny - offset;
+        // Soft 4 px penumbra.
+        let w = 1.0 / (1.0 + (-d / 2.0).exp());
+        let k = 1.0 - (1.0 - dark) * w;
+        for v in px {
+            *v = clamp_u8(f64::from(*v) * k);
+        }
+    });
+    Ok(())
+}
+
+fn blur(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    let len = 2 * s as i32 + 1;
+    let angle = rng.range(0.0, std::f64::consts::PI);
+    let mut kernel = Mat::zeros(len, len, core::CV_32F)?.to_mat()?;
+    let c = f64::from(len - 1) / 2.0;
+    for k in 0..len {
+        let t = f64::from(k) - c;
+        let (x, y) = (
+            (c + t * angle.cos()).round() as i32,
+            (c + t * angle.sin()).round() as i32,
+        );
+        *kernel.at_2d_mut::<f32>(y, x)? = 1.0;
+    }
+    let total = core::sum_elems(&kernel)?[0];
+    let mut normalized = Mat::default();
+    kernel.convert_to(&mut normalized, core::CV_32F, 1.0 / total, 0.0)?;
+    let src = to_mat(&x.img)?;
+    let mut dst = Mat::default();
+    imgproc::filter_2d(
+        &src,
+        &mut dst,
+        -1,
+        &normalized,
+        core::Point::new(-1, -1),
+        0.0,
+        core::BORDER_REFLECT,
+    )?;
+    x.img = from_mat(&dst)?;
+    Ok(())
+}
+
+fn noise(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    let sf = f64::from(s);
+    let sigma = 5.0 * sf;
+    map_pixels(&mut x.img, |_, _, px| {
+        for v in px {
+            *v = clamp_u8(f64::from(*v) + sigma * rng.normal());
+        }
+    });
+    Ok(())
+}
+
+fn jpeg(x: &mut Shifted, _rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    let src = to_mat(&x.img)?;
+    let mut buf = Vector::<u8>::new();
+    let params = Vector::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, jpeg_quality(s)]);
+    imgcodecs::imencode(".jpg", &src, &mut buf, &params)?;
+    let decoded = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_COLOR)?;
+    x.img = from_mat(&decoded)?;
+    Ok(())
+}
+
+fn scale(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    let sf = f64::from(s);
+    let k = 1.0 + rng.sign() * 0.1 * sf / 3.0;
+    let h = (N as f64 - 1.0) / 2.0;
+    // p' = k (p − centre) + centre.
+    let m = Mat::from_slice_2d(&[[k, 0.0, h * (1.0 - k)], [0.0, k, h * (1.0 - k)]])?;
+    let size = core::Size::new(N as i32, N as i32);
+    let mut dst = Mat::default();
+    imgproc::warp_affine(
+        &to_mat(&x.img)?,
+        &mut dst,
+        &m,
+        size,
+        imgproc::INTER_LINEAR,
+        core::BORDER_REFLECT,
+        core::Scalar::default(),
+    )?;
+    x.img = from_mat(&dst)?;
+    // The x.truth is resampled linearly and cut at half, so its edge moves with the image
+    // to a fraction of a pixel (nearest-neighbour moved it by up to half a pixel).
+    let levels: Vec<u8> = x
+        .truth
+        .iter()
+        .map(|&t| if t > 0 { 255 } else { 0 })
+        .collect();
+    let mask_mat = Mat::from_slice(&levels)?
+        .reshape(1, N as i32)?
+        .try_clone()?;
+    let mut mask_dst = Mat::default();
+    imgproc::warp_affine(
+        &mask_mat,
+        &mut mask_dst,
+        &m,
+        size,
+        imgproc::INTER_LINEAR,
+        core::BORDER_CONSTANT,
+        core::Scalar::default(),
+    )?;
+    x.truth = from_mat(&mask_dst)?
+        .into_iter()
+        .map(|v| u8::from(v >= 128))
+        .collect();
+    let scale = |p: (f64, f64)| (k * (p.0 - h) + h, k * (p.1 - h) + h);
+    x.label.tip = scale(x.label.tip);
+    x.label.centroid = scale(x.label.centroid);
+    x.label.tail = scale(x.label.tail);
+    // The capsule now spans k times the pixels: the world is unchanged.
+    x.label.mm_per_px /= k;
+    Ok(())
+}
+
+fn occlusion(x: &mut Shifted, rng: &mut Rng, s: u32) -> opencv::Result<()> {
+    let sf = f64::from(s);
+    if x.label.has_robot {
+        // A grey bar across the capsule at a random place along its axis.
+        let (tx, ty) = (x.label.tail.0, x.label.tail.1);
+        let (dx, dy) = (x.label.tip.0 - tx, x.label.tip.1 - ty);
+        let length = (dx * dx + dy * dy).sqrt().max(1.0);
+        let (ux, uy) = (dx / length, dy / length);
+        let hidden = 0.1 * sf * length;
+        let start = rng.range(0.0, length - hidden);
+        let grey = rng.range(90.0, 170.0);
+        map_pixels(&mut x.img, |c, r, px| {
+            let (pc, pr) = (c as f64 - tx, r as f64 - ty);
+            let along = pc * ux + pr * uy;
+            let across = (-pc * uy + pr * ux).abs();
+            if (start..start + hidden).contains(&along) && across < length * 0.35 {
+                px.fill(clamp_u8(grey));
+                x.truth[r * N + c] = 0;
+            }
+        });
+    }
+    Ok(())
 }
 
 /// Every crop of `split` shifted by `family` at severity `s`.
