@@ -162,25 +162,10 @@ pub struct FluidParams {
 }
 
 impl FluidParams {
-    /// Density the paper's CFD uses (1113 kg/m³). The paper gives one value for both mixtures,
-    /// so both presets use it.
+    /// Density of the paper's glycerin–water mixtures (1113 kg/m³; the paper gives one value for
+    /// its 4.3 cP and 20 cP mixtures): what a scenario's `[fluid]` and `fieldgen cfd` take when
+    /// they are given no density.
     pub const GLYCERIN_WATER_DENSITY: f64 = 1113.0;
-
-    /// 65:35 glycerin–water, 20 cP at 23 °C (elevated blood viscosity).
-    pub fn cp20() -> Self {
-        Self {
-            viscosity_pa_s: 0.020,
-            density_kg_m3: Self::GLYCERIN_WATER_DENSITY,
-        }
-    }
-
-    /// 40:60 glycerin–water, 4.3 cP at 23 °C (near-healthy blood viscosity).
-    pub fn cp4_3() -> Self {
-        Self {
-            viscosity_pa_s: 0.0043,
-            density_kg_m3: Self::GLYCERIN_WATER_DENSITY,
-        }
-    }
 
     pub fn validate(&self) -> Result<(), RigError> {
         require_positive("fluid.viscosity_pa_s", self.viscosity_pa_s)?;
@@ -263,8 +248,13 @@ mod tests {
     fn damping_presets() {
         let r = capsule();
         r.validate().unwrap();
-        let c20 = r.translational_damping(&FluidParams::cp20()).unwrap();
-        let c43 = r.translational_damping(&FluidParams::cp4_3()).unwrap();
+        let fluid = |viscosity_pa_s| FluidParams {
+            viscosity_pa_s,
+            density_kg_m3: FluidParams::GLYCERIN_WATER_DENSITY,
+        };
+        // The paper's 65:35 (20 cP) and 40:60 (4.3 cP) glycerin–water mixtures at 23 °C.
+        let c20 = r.translational_damping(&fluid(0.020)).unwrap();
+        let c43 = r.translational_damping(&fluid(0.0043)).unwrap();
         assert!((c20 / 5.6e-4 - 1.0).abs() < 0.05, "{c20}");
         assert!((c43 / 1.2e-4 - 1.0).abs() < 0.05, "{c43}");
     }

@@ -74,7 +74,7 @@ pub struct FluidSection {
 }
 
 fn default_density() -> f64 {
-    1113.0
+    fieldmaps::rig::FluidParams::GLYCERIN_WATER_DENSITY
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

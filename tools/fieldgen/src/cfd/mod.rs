@@ -51,8 +51,6 @@ use thiserror::Error;
 
 use crate::lbm::{Convergence, Lattice, LbmError, LbmParams, Node};
 
-/// Density of the glycerin–water mixtures (paper), kg/m³.
-pub const DENSITY_KG_M3: f64 = 1113.0;
 /// Calibrated effective chamber depth (see the module docs), m.
 pub const EFFECTIVE_DEPTH_M: f64 = 0.012;
 /// Control-plane velocity / depth-averaged velocity (mid-depth of a Poiseuille profile).
@@ -142,7 +140,7 @@ impl Default for CfdSettings {
         Self {
             dx_m: 0.3e-3,
             depth_m: EFFECTIVE_DEPTH_M,
-            density_kg_m3: DENSITY_KG_M3,
+            density_kg_m3: fieldmaps::rig::FluidParams::GLYCERIN_WATER_DENSITY,
             lattice_velocity: 0.12,
             tolerance: 1e-7,
             max_steps: 300_000,
