@@ -72,15 +72,7 @@ impl Key {
     /// Removes the key; its tables stay (created if missing), so the document keeps its shape.
     pub fn remove(&self, doc: &mut toml::Table) -> anyhow::Result<()> {
         let (key, tables) = self.path.split_last().context("empty key path")?;
-        let mut table = doc;
-        for name in tables {
-            table = table
-                .entry(name.to_string())
-                .or_insert_with(|| toml::Value::Table(toml::Table::new()))
-                .as_table_mut()
-                .with_context(|| format!("scenario: {name} is not a table"))?;
-        }
-        table.remove(*key);
+        crate::table_at(doc, tables)?.remove(*key);
         Ok(())
     }
 }

@@ -192,6 +192,15 @@ pub fn set_in_table(
     value: toml::Value,
 ) -> anyhow::Result<()> {
     let (key, tables) = path.split_last().context("empty key path")?;
+    table_at(doc, tables)?.insert(key.to_string(), value);
+    Ok(())
+}
+
+/// The table at `tables` in a scenario's TOML, created (with those above it) where missing.
+pub fn table_at<'a>(
+    doc: &'a mut toml::Table,
+    tables: &[&str],
+) -> anyhow::Result<&'a mut toml::Table> {
     let mut table = doc;
     for name in tables {
         table = table
@@ -200,8 +209,7 @@ pub fn set_in_table(
             .as_table_mut()
             .with_context(|| format!("scenario: {name} is not a table"))?;
     }
-    table.insert(key.to_string(), value);
-    Ok(())
+    Ok(table)
 }
 
 /// Most whole frames of camera latency a matrix may ask for (the plant keeps that many past
