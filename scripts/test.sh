@@ -4,16 +4,11 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
-# Gates: formatting, one feature set for the run and test builds, no unused dependencies, and
-# clippy with warnings as errors on every target (a check build: it type-checks the dependencies
-# once more, without code generation).
+# Gates: formatting, one feature set for the run and test builds, and clippy with warnings as
+# errors on every target (a check build: it type-checks the dependencies once more, without code
+# generation). That no dependency goes unused is a test (tests/unused_dependencies.rs).
 cargo fmt --all -- --check
 ./scripts/check_features.sh
-CARGO_MACHETE_VERSION="0.9.2"
-if [ "$(cargo machete --version 2>/dev/null)" != "$CARGO_MACHETE_VERSION" ]; then
-  cargo install cargo-machete --version "$CARGO_MACHETE_VERSION" --locked
-fi
-cargo machete
 cargo clippy --release --workspace --all-targets --locked -- -D warnings
 # A private single-node Slurm cluster for the campaign test (slurm-wlm, munge; nothing started).
 ./scripts/setup_slurm.sh
