@@ -1,5 +1,8 @@
-//! The `planner` tool's image side: a canal mask read from an image file with OpenCV. The
-//! planning itself is the `millinav-planning` library.
+//! The `planner` tool's image side: a canal mask read from an image file with OpenCV; and the
+//! scenario it writes from a template (`template`). The planning itself is the
+//! `millinav-planning` library.
+
+pub mod template;
 
 use std::path::{Path, PathBuf};
 

@@ -11,9 +11,8 @@ use anyhow::Context;
 use clap::Parser;
 use fieldmaps::rigfile::Rig;
 use millinav_planner::load_mask;
-use millinav_planning::{
-    geometry_for, plan, scenario_with_plan, trajectory_toml, Mask, PlannerConfig,
-};
+use millinav_planner::template::scenario_from_template;
+use millinav_planning::{geometry_for, plan, trajectory_toml, Mask, PlannerConfig};
 use nalgebra::Vector2;
 
 #[derive(Parser, Debug)]
@@ -142,10 +141,17 @@ fn main() -> anyhow::Result<()> {
     }
     let text = match &args.scenario_template {
         Some(path) => {
-            let template = std::fs::read_to_string(path)
-                .with_context(|| format!("reading scenario template {}", path.display()))?;
-            // The plan is on this rig's phantom: the scenario's `[run] rig` names it.
-            scenario_with_plan(&template, &plan, args.speed_mm_s, Some(&*args.rig))?
+            let (text, notes) = scenario_from_template(
+                path,
+                &args.rig,
+                &plan,
+                args.speed_mm_s,
+                args.output.as_deref(),
+            )?;
+            for note in notes {
+                tracing::warn!("{note}");
+            }
+            text
         }
         None => format!(
             "# millinav-planner: A* on the canal mask, {:.1} mm clearance, w_clear {}, window {},\n\
