@@ -51,7 +51,9 @@ struct Args {
     /// Reference speed to write into the trajectory (omitted if not given).
     #[arg(long)]
     speed_mm_s: Option<f64>,
-    /// Write a full scenario: this scenario file with its trajectory replaced.
+    /// Write a full scenario: this scenario file with its trajectory replaced, its `[run] rig`
+    /// the --rig, its duration lengthened where the new path needs it, and its relative flow map
+    /// re-based to where the scenario is written.
     #[arg(long)]
     scenario_template: Option<PathBuf>,
     /// Also write a Rerun recording (.rrd) of the plan drawn over the top-view image: the canal

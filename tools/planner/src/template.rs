@@ -50,7 +50,11 @@ fn rebase_flow_map(
     let Some(flow) = doc.get_mut("flow").and_then(toml::Value::as_table_mut) else {
         return Ok(());
     };
-    let Some(map) = flow.get("map").and_then(toml::Value::as_str).map(PathBuf::from) else {
+    let Some(map) = flow
+        .get("map")
+        .and_then(toml::Value::as_str)
+        .map(PathBuf::from)
+    else {
         return Ok(());
     };
     let rebased = rebase(&map, template_dir, output_dir, notes, "[flow] map");
@@ -119,7 +123,8 @@ fn long_enough_for_the_path(
     let length_mm = path_length(&waypoints);
     let travel_s = length_mm / trajectory.speed_mm_s;
     let needed_s =
-        (trajectory.start_time_s + travel_s + (SETTLE_FRACTION * travel_s).max(MIN_SETTLE_S)).ceil();
+        (trajectory.start_time_s + travel_s + (SETTLE_FRACTION * travel_s).max(MIN_SETTLE_S))
+            .ceil();
     let duration_s = scenario.run.duration_s;
     if duration_s < needed_s {
         let run = doc
@@ -166,8 +171,8 @@ fn lexically_normal(path: &Path) -> PathBuf {
 
 /// `target` (absolute, normal) as a path relative to the directory `base` (absolute, normal).
 fn relative_path(base: &Path, target: &Path) -> PathBuf {
-    let base: Vec<Component> = base.components().collect();
-    let target_parts: Vec<Component> = target.components().collect();
+    let base: Vec<Component<'_>> = base.components().collect();
+    let target_parts: Vec<Component<'_>> = target.components().collect();
     let common = base
         .iter()
         .zip(&target_parts)

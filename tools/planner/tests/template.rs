@@ -51,7 +51,10 @@ fn a_short_template_is_lengthened_and_its_flow_map_re_based() {
         .windows(2)
         .map(|w| (w[1][0] - w[0][0]).hypot(w[1][1] - w[0][1]))
         .sum();
-    assert!(length_mm > 50.0, "the paper's route is long: {length_mm} mm");
+    assert!(
+        length_mm > 50.0,
+        "the paper's route is long: {length_mm} mm"
+    );
     let travel_s = length_mm / scenario.trajectory.speed_mm_s;
     assert!(
         scenario.run.duration_s >= travel_s + 5.0,
@@ -84,6 +87,9 @@ fn a_short_template_is_lengthened_and_its_flow_map_re_based() {
         .expect("planner runs");
     assert!(run.status.success());
     let scenario = Scenario::load(&beside).unwrap();
-    assert_eq!(scenario.sections["flow"]["map"].as_str(), Some("maps/q180.npz"));
+    assert_eq!(
+        scenario.sections["flow"]["map"].as_str(),
+        Some("maps/q180.npz")
+    );
     let _ = std::fs::remove_dir_all(&base);
 }
