@@ -13,6 +13,9 @@ fn the_robustness_matrix_reports_every_case() {
         .current_dir(&root)
         .args([
             "--robustness",
+            // The short path: every case must become a row, which needs no long run.
+            "--base",
+            "scenarios/short.toml",
             "--controllers",
             "smc-dob-auto",
             "--trials",
